@@ -1,0 +1,12 @@
+"""Command-line entry point ``lcv-replay`` (see :mod:`lcv_replay.cli.app`)."""
+
+from __future__ import annotations
+
+from lcv_replay.cli.app import app
+
+# Each module registers its commands on ``app``, ``record_app`` or ``bench_app``.
+from lcv_replay.cli import bench, demo, info, record, replay, vo  # noqa: E402,F401
+
+
+def main() -> None:
+    app()

@@ -1,0 +1,26 @@
+"""The lcv-replay MCAP log format: topic names, schemas and conventions (docs/log-format.md).
+
+Every message that belongs to a frame carries the frame index in the MCAP message ``sequence`` field
+and the frame's ``stamp_ns`` as ``log_time`` (and ``publish_time``).
+"""
+
+from __future__ import annotations
+
+LEFT_IMAGE_TOPIC = "/stereo/left/image"  # foxglove.CompressedImage (png default, jpeg) or foxglove.RawImage
+RIGHT_IMAGE_TOPIC = "/stereo/right/image"
+LEFT_CALIBRATION_TOPIC = "/stereo/left/calibration"  # foxglove.CameraCalibration
+RIGHT_CALIBRATION_TOPIC = "/stereo/right/calibration"  # P[0][3] = -fx * baseline_m, as in ROS
+ODOM_TOPIC = "/odom"  # foxglove.PoseInFrame, frame_id "odom", planar (x forward, y left, yaw about +z)
+TF_TOPIC = "/tf"  # foxglove.FrameTransform odom -> base_link, mirrors /odom for viewers
+GROUND_TRUTH_TOPIC = "/ground_truth/pose"  # foxglove.PoseInFrame, frame_id "world"
+LOOP_CANDIDATES_TOPIC = "/loop_candidates"  # JSON schema lcv.LoopCandidate
+TRUE_LOOPS_TOPIC = "/ground_truth/loops"  # JSON schema lcv.TrueLoop
+
+ODOM_FRAME_ID = "odom"
+BASE_FRAME_ID = "base_link"
+WORLD_FRAME_ID = "world"
+
+METADATA_NAME = "lcv"  # MCAP metadata record: dataset, nominal_rate_hz, recorder, version, units
+RECORDER_CONFIG_METADATA_NAME = "lcv.recorder_config"  # the recorder's full configuration (JSON values)
+
+FORMAT_VERSION = "1"

@@ -1,0 +1,34 @@
+"""Retrieval configuration: the paper's place-recognition defaults (Tanaka, SII 2016, sec. II-B)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class RetrievalConfig:
+    """Place recognition: CNN descriptor -> PCA -> binary code -> Hamming prefilter -> L2 re-rank."""
+
+    backend: str = "efficientnet-lite0"  # descriptor backend name (registry in descriptors.py)
+    input_size_px: int = 224  # square network input; a multiple of 32
+    batch_size: int = 8  # descriptor batch size
+    top_k: int = 10  # N_r: retrieved frames per query (sec. II-B)
+    exclusion_frames: int = 200  # Δt: frames within Δt of the query are not eligible (sec. II-B)
+    pca_dims: int = 128  # PCA dimension of the CNN feature (sec. II-B)
+    code_bits: int = 20  # N_b: binary code length (sec. II-B)
+    hamming_threshold: int = 3  # T_b: Hamming prefilter radius, inclusive (sec. II-B)
+    fit: Literal["online", "whole-log"] = "online"  # fit PCA/codes on the first Δt frames, or on all
+    itq_iterations: int = 50  # ITQ rotation iterations
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        from lcv_replay.config import require
+
+        require(self.top_k >= 1, "retrieval.top_k", self.top_k, "an integer >= 1")
+        require(self.exclusion_frames >= 0, "retrieval.exclusion_frames", self.exclusion_frames, "an integer >= 0")
+        require(1 <= self.code_bits <= 64, "retrieval.code_bits", self.code_bits, "1..64")
+        require(self.pca_dims >= self.code_bits, "retrieval.pca_dims", self.pca_dims, f"an integer >= code_bits ({self.code_bits})")
+        require(0 <= self.hamming_threshold <= self.code_bits, "retrieval.hamming_threshold", self.hamming_threshold, "0..code_bits")
+        require(self.input_size_px >= 32 and self.input_size_px % 32 == 0, "retrieval.input_size_px", self.input_size_px, "a multiple of 32")
+        require(self.batch_size >= 1, "retrieval.batch_size", self.batch_size, "an integer >= 1")

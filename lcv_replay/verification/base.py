@@ -1,0 +1,140 @@
+"""Records and the ``Verifier`` protocol shared by ``ilv``, ``ilv+`` and every baseline.
+
+The replay and the bench call every method the same way, frame by frame::
+
+    verifier = make_verifier("ilv", config)
+    for frame in frames:
+        verifier.add_frame(frame.index, frame.odom)
+        verifier.add_candidates(candidates_arriving_at(frame))
+        step = verifier.step()          # a VerifierStep at a window end, else None
+    result = verifier.result()          # solves the last, partial window
+
+A verifier never sees the future: constraints only reference frames already added.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, Sequence
+
+import numpy as np
+
+from lcv_replay.records import LoopCandidate, Pose2D
+
+
+@dataclass(frozen=True)
+class Constraint:
+    """A loop candidate admitted into the history, with its id (0, 1, 2, ... in arrival order)."""
+
+    id: int
+    candidate: LoopCandidate
+    arrival_frame: int
+
+    @property
+    def query_frame(self) -> int:
+        return self.candidate.query_frame
+
+    @property
+    def match_frame(self) -> int:
+        return self.candidate.match_frame
+
+
+@dataclass(frozen=True)
+class HypothesisSummary:
+    """A hypothesis as reported to sinks (without its trajectory).
+
+    Attributes:
+        id: unique id, 0 is the odometry-only root.
+        parent_id: the hypothesis it was extended from (``None`` for the root).
+        constraint_ids: the constraints its pose graph optimises, in the order they were added.
+        score: number of constraints in the history consistent with it (paper sec. II-A); for
+            ``ilv+`` the ranking key may differ, see ``rank_key``.
+        rank: 1 = best.
+        window: the window index in which it was created.
+        chi2: whitened chi-square of its pose-graph solution, if computed.
+        rank_key: the value hypotheses are sorted by (``float(score)`` for ``ilv``).
+    """
+
+    id: int
+    parent_id: int | None
+    constraint_ids: tuple[int, ...]
+    score: int
+    rank: int
+    window: int
+    chi2: float | None = None
+    rank_key: float = 0.0
+
+
+@dataclass(frozen=True)
+class VerifierStep:
+    """What changed in one verifier step (a window end).
+
+    Attributes:
+        frame_index: the last frame included in this step.
+        window_index: 0, 1, 2, ... (one per window of ``window_frames`` frames).
+        new_constraint_ids: constraints admitted since the previous step.
+        new_hypotheses: hypotheses created in this step.
+        generation_edges: ``(parent_id, child_id, constraint_id)`` per new hypothesis.
+        ranking: every kept hypothesis, best first.
+        accepted_constraint_ids: constraints consistent with the rank-1 hypothesis (accepted).
+        trajectories: ``{hypothesis_id: (N, 3) [x_m, y_m, yaw_rad]}`` for the top-k hypotheses,
+            N = frame_index + 1 (extended by odometry past their last optimisation).
+        consistency: ``(H, C)`` bool, rows in ``ranking`` order, columns constraint ids 0..C-1.
+        timings_s: seconds spent per stage in this step, e.g. ``{"optimise": .., "score": ..}``.
+        dropped: ``(hypothesis_id, reason)`` for hypotheses dropped (optimiser failure, pruning).
+    """
+
+    frame_index: int
+    window_index: int
+    new_constraint_ids: tuple[int, ...]
+    new_hypotheses: tuple[HypothesisSummary, ...]
+    generation_edges: tuple[tuple[int, int, int], ...]
+    ranking: tuple[HypothesisSummary, ...]
+    accepted_constraint_ids: tuple[int, ...]
+    trajectories: dict[int, np.ndarray] = field(default_factory=dict)
+    consistency: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
+    timings_s: dict[str, float] = field(default_factory=dict)
+    dropped: tuple[tuple[int, str], ...] = ()
+
+
+@dataclass(frozen=True)
+class VerificationResult:
+    """The final answer of a verifier.
+
+    Attributes:
+        method: the verifier's name.
+        constraints: the whole constraint history.
+        accepted_constraint_ids: the accepted loop closures.
+        trajectory: ``(N, 3)`` best trajectory estimate ``[x_m, y_m, yaw_rad]``.
+        ranking: final hypothesis ranking (empty for batch baselines).
+        paper_consistent_ids: constraints consistent with the top hypothesis under the paper's
+            T_p test (sec. II-A), for the paper's own precision/recall.
+        last_step: the last step (for sinks), if any.
+    """
+
+    method: str
+    constraints: tuple[Constraint, ...]
+    accepted_constraint_ids: tuple[int, ...]
+    trajectory: np.ndarray
+    ranking: tuple[HypothesisSummary, ...] = ()
+    paper_consistent_ids: tuple[int, ...] = ()
+    last_step: VerifierStep | None = None
+
+
+class Verifier(Protocol):
+    """Incremental loop-closure verifier (``ilv``, ``ilv+`` and the baselines)."""
+
+    name: str
+
+    def add_frame(self, frame_index: int, odom: Pose2D) -> None:
+        """Append frame ``frame_index`` (must be the next index) with its cumulative odometry."""
+
+    def add_candidates(self, candidates: Sequence[LoopCandidate]) -> list[Constraint]:
+        """Admit candidates into the history; returns the new constraints (after merging
+        duplicates and self-loops and rejecting unknown frames)."""
+
+    def step(self) -> VerifierStep | None:
+        """Run scheduled work; returns a :class:`VerifierStep` at a window end, else ``None``."""
+
+    def result(self) -> VerificationResult:
+        """Finish (process the last partial window) and return the final result."""

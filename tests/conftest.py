@@ -1,0 +1,24 @@
+"""Shared fixtures: the real data in ../shared/data, used by path and never copied."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+SHARED_DATA = Path(os.environ.get("LCV_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+
+
+def shared_path(*parts: str) -> Path:
+    """Path to ``../shared/data/<parts>``; skips the calling test with a reason if it is absent."""
+    path = SHARED_DATA.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"shared data not found: {path} (set LCV_SHARED_DATA or check out shared/ beside the repo)")
+    return path
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    """The ``../shared/data`` folder; skips the test when it is absent."""
+    return shared_path()
