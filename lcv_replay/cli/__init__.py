@@ -5,7 +5,17 @@ from __future__ import annotations
 from lcv_replay.cli.app import app
 
 # Each module registers its commands on ``app``, ``record_app`` or ``bench_app``.
-from lcv_replay.cli import bench, demo, info, record, replay, vo  # noqa: E402,F401
+from lcv_replay.cli import (  # noqa: E402,F401
+    bench_retrieval,
+    bench_verify,
+    bench_vo,
+    demo,
+    info,
+    record,
+    record_synthetic,
+    replay,
+    vo,
+)
 
 
 def main() -> None:

@@ -1,4 +1,4 @@
-"""`lcv-replay bench` commands."""
+"""`lcv-replay` commands: bench_retrieval."""
 
 from __future__ import annotations
 
