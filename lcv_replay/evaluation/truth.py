@@ -1,0 +1,128 @@
+"""Truth of loop-closure constraints: from labels, else from ground-truth poses, else unknown.
+
+The rule (issue 3, "Evaluation"):
+
+1. if the log carries true-loop labels (``/ground_truth/loops``), a constraint is true exactly when
+   its ``(query_frame, match_frame)`` pair is labelled;
+2. otherwise, where ground-truth poses exist, it is true when its endpoints are closer than
+   ``radius_m`` (the paper's T_p = 10 m, sec. II-A) in the ground truth;
+3. otherwise its truth is unknown, and every metric that needs it is ``None``.
+
+Pure functions over pairs and arrays; nothing here reads a file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from lcv_replay.errors import VerificationError
+
+
+class TruthSource(str, Enum):
+    """Where the truth of the constraints came from."""
+
+    LABELS = "labels"
+    GROUND_TRUTH = "ground_truth"
+    NONE = "none"
+
+
+@dataclass(frozen=True)
+class LoopTruth:
+    """Truth of every constraint of a history, indexed by constraint id (0..C-1).
+
+    Attributes:
+        source: labels, ground-truth distance, or none (every entry unknown).
+        is_true: per constraint id, ``True``/``False``, or ``None`` when unknown.
+        radius_m: the distance threshold used with ``source == GROUND_TRUTH``.
+    """
+
+    source: TruthSource
+    is_true: tuple[bool | None, ...]
+    radius_m: float | None = None
+
+    @property
+    def known(self) -> bool:
+        """Whether the truth of every constraint is known (labels or ground truth)."""
+        return self.source is not TruthSource.NONE
+
+    @property
+    def true_ids(self) -> frozenset[int]:
+        """Ids of the constraints known to be true."""
+        return frozenset(i for i, t in enumerate(self.is_true) if t is True)
+
+    @property
+    def false_ids(self) -> frozenset[int]:
+        """Ids of the constraints known to be false."""
+        return frozenset(i for i, t in enumerate(self.is_true) if t is False)
+
+    def __len__(self) -> int:
+        return len(self.is_true)
+
+    def restricted(self, count: int) -> "LoopTruth":
+        """The truth of the first ``count`` constraints (those arrived by some frame)."""
+        return LoopTruth(self.source, self.is_true[:count], self.radius_m)
+
+
+def normalise_pair(a: int, b: int) -> tuple[int, int]:
+    """``(later, earlier)``: the orientation of :attr:`LoopCandidate.pair`."""
+    return (int(a), int(b)) if a >= b else (int(b), int(a))
+
+
+def endpoint_distances_m(pairs: Sequence[tuple[int, int]], ground_truth: np.ndarray) -> np.ndarray:
+    """Ground-truth distance between the two frames of each pair.
+
+    Args:
+        pairs: ``C`` frame index pairs.
+        ground_truth: ``(N, 2)`` or ``(N, 3)`` ground-truth poses ``[x_m, y_m(, yaw_rad)]``.
+
+    Returns:
+        ``(C,)`` float64 distances in metres.
+    """
+    ground_truth = np.asarray(ground_truth, dtype=np.float64)
+    if ground_truth.ndim != 2 or ground_truth.shape[1] < 2:
+        raise VerificationError(
+            f"ground truth must be an (N, 2) or (N, 3) array, got shape {ground_truth.shape}",
+            fix="pass one [x_m, y_m, yaw_rad] row per frame",
+        )
+    index = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    if index.size and (index.min() < 0 or index.max() >= len(ground_truth)):
+        raise VerificationError(
+            f"a constraint references frame {int(index.max())} but the ground truth has "
+            f"{len(ground_truth)} poses",
+            fix="pass the ground truth of the whole log",
+        )
+    xy = ground_truth[:, :2]
+    return np.linalg.norm(xy[index[:, 0]] - xy[index[:, 1]], axis=1)
+
+
+def loop_truth(
+    pairs: Sequence[tuple[int, int]],
+    *,
+    true_pairs: Iterable[tuple[int, int]] | None = None,
+    ground_truth: np.ndarray | None = None,
+    radius_m: float = 10.0,
+) -> LoopTruth:
+    """Truth of each constraint ``pairs[i]`` (constraint id ``i``).
+
+    Args:
+        pairs: ``C`` ``(query_frame, match_frame)`` pairs, in constraint-id order.
+        true_pairs: the labelled true pairs, or ``None`` when the log has no labels. An empty
+            collection means "labelled, and no candidate is true".
+        ground_truth: ``(N, 2|3)`` ground-truth poses, or ``None``.
+        radius_m: T_p, the ground-truth distance below which an unlabelled pair is true.
+    """
+    if true_pairs is not None:
+        labelled = {normalise_pair(a, b) for a, b in true_pairs}
+        return LoopTruth(
+            TruthSource.LABELS, tuple(normalise_pair(a, b) in labelled for a, b in pairs)
+        )
+    if ground_truth is not None:
+        distances = endpoint_distances_m(pairs, ground_truth)
+        return LoopTruth(
+            TruthSource.GROUND_TRUTH, tuple(bool(d < radius_m) for d in distances), radius_m
+        )
+    return LoopTruth(TruthSource.NONE, (None,) * len(pairs))
