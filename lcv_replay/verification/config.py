@@ -2,7 +2,36 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class BaselineConfig:
+    """Parameters of the baseline verifiers (``none``, ``ir-only``, ``dcs``, ``gm``, ``cauchy``,
+    ``gnc``, ``oracle``; lcv_replay.verification.baselines)."""
+
+    solve_every: Literal["window", "end"] = "window"  # batch solve at every window end, or once in result()
+    accept_chi2: float = 7.81  # accept a loop whose whitened chi2 at the solution is below chi2(3 dof, 0.95)
+    dcs_phi: float = 100.0  # DCS Φ; Φ = 1 accepts nothing on robustslam_kitti (issue 3)
+    gm_c: float = 10.0  # Geman-McClure c (c² = 100); c = 1 accepts nothing on robustslam_kitti
+    cauchy_c: float = 1.0  # Cauchy c
+    gnc_weights_tol: float = 1e-9  # GTSAM's default 1e-4 stops GNC-TLS with every weight ~1e-5
+    gnc_accept_weight: float = 0.5  # accept a loop whose final GNC weight exceeds this
+    ir_only_count: int = 10  # X: constraints drawn at random and all accepted (paper baseline, X in 10..50)
+    max_iterations: int = 100  # Levenberg-Marquardt / GNC iteration cap
+
+    def __post_init__(self) -> None:
+        from lcv_replay.config import require
+
+        require(self.accept_chi2 > 0, "verification.baselines.accept_chi2", self.accept_chi2, "a number > 0")
+        require(self.dcs_phi > 0, "verification.baselines.dcs_phi", self.dcs_phi, "a number > 0")
+        require(self.gm_c > 0, "verification.baselines.gm_c", self.gm_c, "a number > 0")
+        require(self.cauchy_c > 0, "verification.baselines.cauchy_c", self.cauchy_c, "a number > 0")
+        require(0 < self.gnc_weights_tol < 1, "verification.baselines.gnc_weights_tol", self.gnc_weights_tol, "a number in (0, 1)")
+        require(0 < self.gnc_accept_weight < 1, "verification.baselines.gnc_accept_weight", self.gnc_accept_weight, "a number in (0, 1)")
+        require(self.ir_only_count >= 1, "verification.baselines.ir_only_count", self.ir_only_count, "an integer >= 1")
+        require(self.max_iterations >= 1, "verification.baselines.max_iterations", self.max_iterations, "an integer >= 1")
 
 
 @dataclass(frozen=True)
@@ -16,6 +45,7 @@ class VerificationConfig:
     hypotheses_per_iteration: int = 10  # top-ranked hypotheses extended per iteration (sec. II-D)
     max_hypotheses: int = 200  # pruning bound on kept hypotheses
     seed: int = 0
+    baselines: BaselineConfig = field(default_factory=BaselineConfig)  # baseline verifiers
 
     def __post_init__(self) -> None:
         from lcv_replay.config import require
