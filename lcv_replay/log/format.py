@@ -24,3 +24,14 @@ METADATA_NAME = "lcv"  # MCAP metadata record: dataset, nominal_rate_hz, recorde
 RECORDER_CONFIG_METADATA_NAME = "lcv.recorder_config"  # the recorder's full configuration (JSON values)
 
 FORMAT_VERSION = "1"
+
+# Written into the `lcv` metadata record so that a log explains itself.
+FRAME_CONVENTIONS = (
+    "planar REP-103: x forward, y left, yaw counter-clockwise about +z; /odom is T_odom_base_link, "
+    "/ground_truth/pose is T_world_base_link; 3-D poses are stored with z = 0 and a yaw-only quaternion"
+)
+FRAME_INDEX_CONVENTION = (
+    "frame i (0..N-1 in time order) has log_time = publish_time = its stamp_ns; every message of frame i "
+    "carries MCAP sequence = i; loop candidates and labels carry log_time = the query frame's stamp_ns "
+    "and sequence = query_frame"
+)

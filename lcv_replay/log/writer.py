@@ -1,0 +1,422 @@
+"""The one log writer: frames, odometry, ground truth and loop candidates into an lcv-replay MCAP.
+
+Every recorder hands its records to :class:`LogWriter`, which owns the schemas, the compression and
+the temp-then-rename step (:func:`lcv_replay.fileio.atomic_output`): an interrupted or failed
+recording leaves no output file, and an existing file is refused unless ``force``.
+
+Frame index <-> time (docs/log-format.md): frame ``i`` is the ``i``-th call of :meth:`write_frame`;
+all of its messages get ``log_time = publish_time = stamp_ns`` and MCAP ``sequence = i``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+from pathlib import Path
+from typing import Any, BinaryIO, Literal
+
+import numpy as np
+from mcap.well_known import MessageEncoding, SchemaEncoding
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
+from mcap_protobuf.schema import register_schema
+
+from lcv_replay import __version__
+from lcv_replay.errors import RecorderError
+from lcv_replay.fileio import atomic_output
+from lcv_replay.log import format as fmt
+from lcv_replay.log import images, messages
+from lcv_replay.records import LoopCandidate, Pose2D, StereoCalibration
+
+_COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+# The `lcv` metadata keys the writer owns; extra_metadata may not override them.
+RESERVED_METADATA_KEYS = (
+    "dataset",
+    "nominal_rate_hz",
+    "recorder",
+    "recorder_version",
+    "format_version",
+    "units",
+    "frame_conventions",
+    "frame_index",
+    "odometry_information",
+    "image_format",
+    "compression",
+)
+
+
+class LogWriter:
+    """Write an lcv-replay MCAP log atomically (a context manager).
+
+    Args:
+        path: output ``.mcap`` path; written as a temp file in the same folder, renamed on success.
+        force: overwrite an existing ``path``.
+        dataset: dataset name, e.g. ``"kitti/06"``.
+        recorder: recorder name, e.g. ``"kitti"``.
+        nominal_rate_hz: nominal frame rate.
+        recorder_config: the recorder's full configuration; each value is stored JSON-encoded in the
+            ``lcv.recorder_config`` metadata record.
+        image_format: ``"png"`` (lossless, default), ``"jpeg"`` (``jpeg_quality``) or ``"raw"``.
+        compression: MCAP chunk compression.
+        odometry_information: ``(3, 3)`` information matrix of one odometry step (x, y, yaw), if known.
+        extra_metadata: more string entries for the ``lcv`` record (not the reserved keys).
+        chunk_size_bytes: target MCAP chunk size; smaller chunks make time-window reads finer.
+
+    Raises:
+        OutputError: ``path`` exists (without ``force``) or its folder is missing/unwritable.
+        RecorderError: invalid arguments or records (the message names the frame).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        force: bool = False,
+        dataset: str,
+        recorder: str,
+        nominal_rate_hz: float,
+        recorder_config: dict,
+        image_format: Literal["png", "jpeg", "raw"] = "png",
+        jpeg_quality: int = 95,
+        compression: Literal["zstd", "lz4", "none"] = "zstd",
+        odometry_information: np.ndarray | None = None,
+        extra_metadata: dict[str, str] | None = None,
+        chunk_size_bytes: int = 1 << 20,
+    ):
+        self.path = Path(path)
+        if image_format not in images.IMAGE_FORMATS:
+            raise RecorderError(f"unknown image format {image_format!r}", fix="use png, jpeg or raw")
+        if compression not in _COMPRESSION:
+            raise RecorderError(f"unknown compression {compression!r}", fix="use zstd, lz4 or none")
+        if not 1 <= int(jpeg_quality) <= 100:
+            raise RecorderError(f"jpeg_quality {jpeg_quality} is out of range", fix="use 1..100")
+        if not (math.isfinite(nominal_rate_hz) and nominal_rate_hz > 0):
+            raise RecorderError(f"nominal_rate_hz {nominal_rate_hz} must be a positive number")
+        if odometry_information is not None:
+            odometry_information = np.asarray(odometry_information, dtype=np.float64)
+            if odometry_information.shape != (3, 3) or not np.all(np.isfinite(odometry_information)):
+                raise RecorderError(
+                    f"odometry_information must be a finite (3, 3) matrix, got shape {odometry_information.shape}"
+                )
+        extra = dict(extra_metadata or {})
+        clash = sorted(set(extra) & set(RESERVED_METADATA_KEYS))
+        if clash:
+            raise RecorderError(f"extra_metadata may not set the reserved keys {clash}")
+        try:
+            config_record = {str(k): json.dumps(v, sort_keys=True) for k, v in recorder_config.items()}
+        except (TypeError, ValueError) as exc:
+            raise RecorderError(f"recorder_config is not JSON-serialisable: {exc}") from None
+
+        self.image_format = image_format
+        self.jpeg_quality = int(jpeg_quality)
+        self.compression = compression
+        self._frames_written = 0
+        self._last_stamp_ns: int | None = None
+        self._frame_stamps_ns: list[int] = []
+        self._layout: tuple[bool, bool, bool] | None = None  # (left, right, odom) present
+        self._image_shape: tuple[int, ...] | None = None
+        self._channels: dict[str, int] = {}
+        self._schemas: dict[str, int] = {}
+        self._closed = False
+
+        self._atomic = atomic_output(self.path, force=force)
+        tmp = self._atomic.__enter__()
+        try:
+            self._stream: BinaryIO = open(tmp, "wb")
+            self._mcap = McapWriter(
+                self._stream,
+                chunk_size=int(chunk_size_bytes),
+                compression=_COMPRESSION[compression],
+                enable_crcs=True,
+            )
+            self._mcap.start(profile="", library=f"lcv-replay/{__version__}")
+            self._mcap.add_metadata(
+                fmt.METADATA_NAME,
+                {
+                    "dataset": str(dataset),
+                    "nominal_rate_hz": repr(float(nominal_rate_hz)),
+                    "recorder": str(recorder),
+                    "recorder_version": __version__,
+                    "format_version": fmt.FORMAT_VERSION,
+                    "units": "m, rad, ns",
+                    "frame_conventions": fmt.FRAME_CONVENTIONS,
+                    "frame_index": fmt.FRAME_INDEX_CONVENTION,
+                    "odometry_information": messages.information_to_json(odometry_information),
+                    "image_format": image_format,
+                    "compression": compression,
+                    **{str(k): str(v) for k, v in extra.items()},
+                },
+            )
+            self._mcap.add_metadata(fmt.RECORDER_CONFIG_METADATA_NAME, config_record)
+        except BaseException:
+            self._abort(*_exc_info())
+            raise
+
+    # -- context manager -------------------------------------------------------------------------
+    def __enter__(self) -> "LogWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is None:
+            self.close()
+        else:
+            self._abort(exc_type, exc, tb)
+        return False
+
+    @property
+    def frames_written(self) -> int:
+        """Number of frames written so far (the next frame's index)."""
+        return self._frames_written
+
+    def close(self) -> None:
+        """Finish the MCAP (summary, indexes) and rename the temp file onto ``path``.
+
+        Raises :class:`RecorderError` (and leaves no file) when no frame was written.
+        """
+        if self._closed:
+            return
+        if self._frames_written == 0:
+            error = RecorderError(
+                "no frames were written; refusing to create an empty log",
+                path=self.path,
+                fix="check that the source has images or odometry",
+            )
+            self._abort(type(error), error, None)
+            raise error
+        try:
+            self._mcap.finish()
+            self._stream.close()
+        except BaseException:
+            self._abort(*_exc_info())
+            raise
+        self._closed = True
+        self._atomic.__exit__(None, None, None)
+
+    def abort(self) -> None:
+        """Discard the recording: close and delete the temp file; ``path`` is left untouched."""
+        self._abort(RuntimeError, RuntimeError("aborted"), None)
+
+    def _abort(self, exc_type, exc, tb) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        with contextlib.suppress(Exception):
+            self._stream.close()
+        with contextlib.suppress(BaseException):
+            self._atomic.__exit__(exc_type, exc, tb)
+
+    # -- records ---------------------------------------------------------------------------------
+    def write_calibration(self, calib: StereoCalibration, stamp_ns: int) -> None:
+        """Write the left and right ``foxglove.CameraCalibration`` (right ``P[0, 3] = -fx * baseline_m``)."""
+        self._check_open()
+        if not (calib.width_px > 0 and calib.height_px > 0 and calib.fx_px > 0 and calib.fy_px > 0):
+            raise RecorderError(f"invalid calibration {calib}", path=self.path)
+        if not (math.isfinite(calib.baseline_m) and calib.baseline_m >= 0):
+            raise RecorderError(f"calibration baseline_m {calib.baseline_m} must be >= 0", path=self.path)
+        left, right = messages.calibration_messages(calib, int(stamp_ns))
+        self._write_proto(fmt.LEFT_CALIBRATION_TOPIC, left, int(stamp_ns), 0)
+        self._write_proto(fmt.RIGHT_CALIBRATION_TOPIC, right, int(stamp_ns), 0)
+
+    def write_frame(
+        self,
+        index: int,
+        stamp_ns: int,
+        *,
+        left: np.ndarray | None = None,
+        right: np.ndarray | None = None,
+        odom: Pose2D | None = None,
+        ground_truth: Pose2D | None = None,
+    ) -> None:
+        """Write frame ``index`` (must be :attr:`frames_written`) at ``stamp_ns`` (strictly increasing).
+
+        Args:
+            left, right: ``(H, W)`` uint8 grey or ``(H, W, 3)`` uint8 RGB images of the same shape.
+            odom: cumulative planar odometry ``T_odom_base`` (also written to ``/tf``).
+            ground_truth: planar ground truth ``T_world_base``.
+
+        Every frame must have the same layout as frame 0 (left / right / odometry present or not);
+        ground truth may be missing on some frames. A frame needs a left image or odometry.
+        """
+        self._check_open()
+        index, stamp_ns = int(index), int(stamp_ns)
+        if index != self._frames_written:
+            raise RecorderError(
+                f"frame index {index} is out of order, expected {self._frames_written}", path=self.path
+            )
+        if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
+            raise RecorderError(
+                f"frame {index}: stamp {stamp_ns} ns is not after the previous frame's {self._last_stamp_ns} ns",
+                path=self.path,
+                fix="frame stamps must strictly increase",
+            )
+        if stamp_ns < 0:
+            raise RecorderError(f"frame {index}: negative stamp {stamp_ns} ns", path=self.path)
+        layout = (left is not None, right is not None, odom is not None)
+        if not (layout[0] or layout[2]):
+            raise RecorderError(f"frame {index} has neither a left image nor odometry", path=self.path)
+        if layout[1] and not layout[0]:
+            raise RecorderError(f"frame {index} has a right image but no left image", path=self.path)
+        if self._layout is None:
+            self._layout = layout
+        elif layout != self._layout:
+            names = ("left image", "right image", "odometry")
+            diff = [n for n, a, b in zip(names, layout, self._layout) if a != b]
+            raise RecorderError(
+                f"frame {index} differs from frame 0 in {', '.join(diff)}",
+                path=self.path,
+                fix="every frame must carry the same kinds of data (ground truth excepted)",
+            )
+        for name, pose in (("odometry", odom), ("ground truth", ground_truth)):
+            if pose is not None and not all(math.isfinite(float(v)) for v in pose):
+                raise RecorderError(f"frame {index}: {name} {tuple(pose)} is not finite", path=self.path)
+
+        encoded = []
+        try:
+            for side, image in (("left", left), ("right", right)):
+                if image is not None:
+                    checked = images.check_image(image, f"frame {index} {side} image")
+                    if self._image_shape is None:
+                        self._image_shape = checked.shape
+                    elif checked.shape != self._image_shape:
+                        raise ValueError(
+                            f"frame {index} {side} image has shape {checked.shape}, earlier images {self._image_shape}"
+                        )
+                    encoded.append((side, self._image_message(checked, side, stamp_ns)))
+        except ValueError as exc:
+            raise RecorderError(str(exc), path=self.path) from None
+
+        for side, message in encoded:
+            topic = fmt.LEFT_IMAGE_TOPIC if side == "left" else fmt.RIGHT_IMAGE_TOPIC
+            self._write_proto(topic, message, stamp_ns, index)
+        if odom is not None:
+            odom = Pose2D(float(odom[0]), float(odom[1]), float(odom[2]))
+            self._write_proto(fmt.ODOM_TOPIC, messages.pose_in_frame(odom, stamp_ns, fmt.ODOM_FRAME_ID), stamp_ns, index)
+            self._write_proto(
+                fmt.TF_TOPIC,
+                messages.frame_transform(odom, stamp_ns, fmt.ODOM_FRAME_ID, fmt.BASE_FRAME_ID),
+                stamp_ns,
+                index,
+            )
+        if ground_truth is not None:
+            gt = Pose2D(float(ground_truth[0]), float(ground_truth[1]), float(ground_truth[2]))
+            self._write_proto(
+                fmt.GROUND_TRUTH_TOPIC, messages.pose_in_frame(gt, stamp_ns, fmt.WORLD_FRAME_ID), stamp_ns, index
+            )
+        self._frames_written += 1
+        self._last_stamp_ns = stamp_ns
+        self._frame_stamps_ns.append(stamp_ns)
+
+    def write_loop_candidate(self, candidate: LoopCandidate, stamp_ns: int) -> None:
+        """Write a candidate on ``/loop_candidates``; ``stamp_ns`` is the query frame's stamp.
+
+        The query frame must already be written (``query_frame < frames_written``).
+        """
+        self._check_open()
+        self._check_pair(candidate.query_frame, candidate.match_frame, int(stamp_ns), "loop candidate")
+        if not math.isfinite(float(candidate.similarity)):
+            raise RecorderError(f"loop candidate {candidate.pair} has similarity {candidate.similarity}", path=self.path)
+        if candidate.information is not None and (
+            len(candidate.information) != 6 or not all(math.isfinite(float(v)) for v in candidate.information)
+        ):
+            raise RecorderError(f"loop candidate {candidate.pair}: information must be 6 finite numbers", path=self.path)
+        if candidate.T_match_query is not None and not all(math.isfinite(float(v)) for v in candidate.T_match_query):
+            raise RecorderError(f"loop candidate {candidate.pair}: T_match_query is not finite", path=self.path)
+        self._write_json(
+            fmt.LOOP_CANDIDATES_TOPIC,
+            messages.LOOP_CANDIDATE_SCHEMA,
+            messages.LOOP_CANDIDATE_JSON_SCHEMA,
+            messages.candidate_to_json(candidate),
+            int(stamp_ns),
+            int(candidate.query_frame),
+        )
+
+    def write_true_loop(self, query_frame: int, match_frame: int, stamp_ns: int) -> None:
+        """Write a labelled true pair on ``/ground_truth/loops``; ``stamp_ns`` is the query frame's stamp."""
+        self._check_open()
+        self._check_pair(int(query_frame), int(match_frame), int(stamp_ns), "true loop")
+        self._write_json(
+            fmt.TRUE_LOOPS_TOPIC,
+            messages.TRUE_LOOP_SCHEMA,
+            messages.TRUE_LOOP_JSON_SCHEMA,
+            messages.true_loop_to_json(query_frame, match_frame),
+            int(stamp_ns),
+            int(query_frame),
+        )
+
+    # -- internals -------------------------------------------------------------------------------
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RecorderError("the log writer is closed", path=self.path)
+
+    def _check_pair(self, query_frame: int, match_frame: int, stamp_ns: int, what: str) -> None:
+        if not 0 <= match_frame < query_frame:
+            raise RecorderError(
+                f"{what} ({query_frame}, {match_frame}) must have 0 <= match_frame < query_frame", path=self.path
+            )
+        if query_frame >= self._frames_written:
+            raise RecorderError(
+                f"{what} ({query_frame}, {match_frame}) refers to frame {query_frame}, "
+                f"but only {self._frames_written} frames are written",
+                path=self.path,
+                fix="write the query frame before its loop candidates",
+            )
+        if stamp_ns != self._frame_stamps_ns[query_frame]:
+            raise RecorderError(
+                f"{what} ({query_frame}, {match_frame}) has stamp {stamp_ns} ns, "
+                f"but frame {query_frame} has {self._frame_stamps_ns[query_frame]} ns",
+                path=self.path,
+                fix="pass the query frame's stamp_ns",
+            )
+
+    def _image_message(self, image: np.ndarray, side: str, stamp_ns: int) -> Any:
+        frame_id = "camera_left" if side == "left" else "camera_right"
+        if self.image_format == "raw":
+            message = messages.RawImage(frame_id=frame_id, **images.raw_image_fields(image))
+        else:
+            data = images.encode_compressed(image, self.image_format, jpeg_quality=self.jpeg_quality)
+            message = messages.CompressedImage(frame_id=frame_id, data=data, format=self.image_format)
+        message.timestamp.seconds = stamp_ns // 1_000_000_000
+        message.timestamp.nanos = stamp_ns % 1_000_000_000
+        return message
+
+    def _channel(self, topic: str, schema_id: int, encoding: str) -> int:
+        channel_id = self._channels.get(topic)
+        if channel_id is None:
+            channel_id = self._mcap.register_channel(topic=topic, message_encoding=encoding, schema_id=schema_id)
+            self._channels[topic] = channel_id
+        return channel_id
+
+    def _write_proto(self, topic: str, message: Any, stamp_ns: int, sequence: int) -> None:
+        name = type(message).DESCRIPTOR.full_name
+        schema_id = self._schemas.get(name)
+        if schema_id is None:
+            schema_id = register_schema(self._mcap, type(message))
+            self._schemas[name] = schema_id
+        channel_id = self._channel(topic, schema_id, MessageEncoding.Protobuf)
+        self._mcap.add_message(
+            channel_id=channel_id,
+            log_time=stamp_ns,
+            publish_time=stamp_ns,
+            sequence=sequence,
+            data=message.SerializeToString(),
+        )
+
+    def _write_json(self, topic: str, schema_name: str, schema: dict, data: bytes, stamp_ns: int, sequence: int) -> None:
+        schema_id = self._schemas.get(schema_name)
+        if schema_id is None:
+            schema_id = self._mcap.register_schema(
+                name=schema_name, encoding=SchemaEncoding.JSONSchema, data=json.dumps(schema).encode()
+            )
+            self._schemas[schema_name] = schema_id
+        channel_id = self._channel(topic, schema_id, MessageEncoding.JSON)
+        self._mcap.add_message(
+            channel_id=channel_id, log_time=stamp_ns, publish_time=stamp_ns, sequence=sequence, data=data
+        )
+
+
+def _exc_info():
+    import sys
+
+    return sys.exc_info()
