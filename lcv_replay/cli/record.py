@@ -1,5 +1,111 @@
-"""`lcv-replay record` commands."""
+"""``lcv-replay record FORMAT SOURCE -o OUT.mcap``: the dataset recorders (``recorders/``).
+
+Each command converts its arguments into the recorder's options dataclass, runs the recorder with a
+rich progress bar on stderr (unless ``--quiet``) and prints a one-line summary. Recorder modules
+(and with them cv2, mcap) are imported inside the command bodies so that ``--help`` stays fast.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import logging
+from pathlib import Path
+from typing import Iterator, Optional
+
+import enum
+
+import typer
+
 from lcv_replay.cli.app import app, bench_app, record_app  # noqa: F401
+
+log = logging.getLogger(__name__)
+
+class OutlierModeChoice(str, enum.Enum):
+    random = "random"
+    local = "local"
+    group = "group"
+
+
+class LoopMeasurementsChoice(str, enum.Enum):
+    as_recorded = "as-recorded"
+    same_place = "same-place"
+
+
+OUT_OPTION = typer.Option(..., "--out", "-o", help="Output .mcap file (written atomically).")
+FORCE_OPTION = typer.Option(False, "--force", "-f", help="Overwrite OUT if it exists.")
+QUIET_OPTION = typer.Option(False, "--quiet", "-q", help="No progress bar and no summary line.")
+
+
+@contextlib.contextmanager
+def recording_progress(description: str, *, quiet: bool) -> Iterator:
+    """Yield a ``progress(done, total)`` callback drawing a rich progress bar on stderr (or ``None``)."""
+    if quiet:
+        yield None
+        return
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    with Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("frames"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=Console(stderr=True),
+        transient=True,
+    ) as bar:
+        task = bar.add_task(description, total=None)
+
+        def update(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        yield update
+
+
+def _finish(stats, quiet: bool) -> None:
+    if not quiet:
+        typer.echo(stats.summary())
+
+
+@record_app.command("g2o")
+def record_g2o_command(
+    graph: Path = typer.Argument(..., help="2-D pose graph: .g2o (VERTEX_SE2/EDGE_SE2), TORO, or Vertigo groundTruth .dat."),
+    out: Path = OUT_OPTION,
+    ground_truth: Optional[Path] = typer.Option(None, "--ground-truth", help="Ground truth: g2o vertices, g2o edge chain i->i+1, or 'x y theta' lines."),
+    true_loops: Optional[Path] = typer.Option(None, "--true-loops", help="True-loop labels, 'i j' per line."),
+    auto_siblings: bool = typer.Option(True, "--auto-siblings/--no-auto-siblings", help="For robustslam_kitti kitti_SS_alpha_A.g2o, use the sibling _GT_LC.txt labels and kitti_SS_GT.g2o."),
+    outliers: int = typer.Option(0, "--outliers", min=0, help="Inject this many false loops (Vertigo protocol)."),
+    outlier_mode: OutlierModeChoice = typer.Option(OutlierModeChoice.random, "--outlier-mode", case_sensitive=False, help="random: any two poses; local: within 20 poses; group: runs of mutually consistent loops."),
+    group_size: int = typer.Option(10, "--group-size", min=1, help="Loops per run in group mode."),
+    seed: int = typer.Option(0, "--seed", help="Random seed of the outlier injection."),
+    loop_measurements: LoopMeasurementsChoice = typer.Option(LoopMeasurementsChoice.as_recorded, "--loop-measurements", help="Keep each loop edge's relative pose, or drop it ('same place', as a place recognizer reports)."),
+    original_loops_true: Optional[bool] = typer.Option(None, "--original-loops-true/--original-loops-unlabelled", help="Label the graph's own loops true when no --true-loops is given (default: only when injecting outliers)."),
+    rate_hz: float = typer.Option(10.0, "--rate-hz", help="Frame rate for the stamps (robustslam_kitti VO is 10 Hz)."),
+    start_ns: int = typer.Option(0, "--start-ns", help="Stamp of frame 0 in nanoseconds."),
+    source: Optional[str] = typer.Option(None, "--source", help="Detector name on the graph's candidates (default: DLoopDetector for robustslam_kitti, else g2o)."),
+    dataset: Optional[str] = typer.Option(None, "--dataset", help="Dataset name for the log metadata."),
+    force: bool = FORCE_OPTION,
+    quiet: bool = QUIET_OPTION,
+) -> None:
+    """Record a 2-D pose graph: odometry chain -> /odom, other edges -> /loop_candidates."""
+    from recorders.g2o import G2oOptions, record_g2o
+
+    options = G2oOptions(
+        ground_truth=ground_truth,
+        true_loops=true_loops,
+        auto_siblings=auto_siblings,
+        outliers=outliers,
+        outlier_mode=outlier_mode.value,  # type: ignore[arg-type]
+        group_size=group_size,
+        seed=seed,
+        loop_measurements=loop_measurements.value,  # type: ignore[arg-type]
+        original_loops_true=original_loops_true,
+        rate_hz=rate_hz,
+        start_stamp_ns=start_ns,
+        source=source,
+        dataset=dataset,
+    )
+    with recording_progress("g2o", quiet=quiet) as progress:
+        stats = record_g2o(graph, out, options, force=force, progress=progress)
+    _finish(stats, quiet)

@@ -1,0 +1,64 @@
+"""Dataset recorders: one module per source format, each writing an lcv-replay MCAP log.
+
+Every recorder is a function ``record_<name>(source, out_path, options, *, force=False,
+progress=None) -> RecordStats`` (see :class:`Recorder`), with a frozen ``<Name>Options``
+dataclass. :data:`RECORDERS` maps the CLI name to its module and function; modules are imported
+only when a recorder is looked up, so that listing them stays cheap.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+from lcv_replay.errors import RecorderError
+
+
+class Recorder(Protocol):
+    """A recorder: a source dataset and options in, one log out (written atomically)."""
+
+    def __call__(
+        self, source: Any, out_path: str | Path, options: Any, *, force: bool = False, progress: Any = None
+    ) -> Any: ...
+
+
+@dataclass(frozen=True)
+class RecorderInfo:
+    """Registry entry: CLI ``name``, the ``module`` and ``function`` that record, a one-line ``summary``."""
+
+    name: str
+    module: str
+    function: str
+    options: str
+    summary: str
+
+    def load(self) -> Recorder:
+        """Import the module and return the recorder function."""
+        return getattr(importlib.import_module(self.module), self.function)
+
+    def load_options(self) -> type:
+        """Import the module and return its options dataclass."""
+        return getattr(importlib.import_module(self.module), self.options)
+
+
+RECORDERS: dict[str, RecorderInfo] = {
+    info.name: info
+    for info in (
+        RecorderInfo("synthetic", "recorders.synthetic", "record_synthetic", "SyntheticOptions", "the built-in procedural street world"),
+        RecorderInfo("kitti", "recorders.kitti", "record_kitti", "KittiOptions", "KITTI odometry layout (sequences/SS/image_0, image_1, calib.txt, times.txt)"),
+        RecorderInfo("euroc", "recorders.euroc", "record_euroc", "EurocOptions", "EuRoC ASL layout (mav0/cam0, mav0/cam1, state_groundtruth_estimate0)"),
+        RecorderInfo("folder", "recorders.folder", "record_folder", "FolderOptions", "left/right image folders plus a planar odometry CSV"),
+        RecorderInfo("g2o", "recorders.g2o", "record_g2o", "G2oOptions", "a 2-D pose graph (g2o, TORO, Vertigo ground truth)"),
+        RecorderInfo("ros2", "recorders.ros2", "record_ros2", "Ros2Options", "a ROS 2 MCAP (sensor_msgs images, nav_msgs/Odometry)"),
+    )
+}
+
+
+def get_recorder(name: str) -> RecorderInfo:
+    """The registry entry for ``name``; raises :class:`RecorderError` listing the known names."""
+    try:
+        return RECORDERS[name]
+    except KeyError:
+        raise RecorderError(f"unknown recorder {name!r}", fix=f"use one of {', '.join(sorted(RECORDERS))}") from None
