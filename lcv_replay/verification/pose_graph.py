@@ -1,0 +1,508 @@
+"""The one place that talks to GTSAM: planar pose graphs of odometry plus loop constraints.
+
+Conventions:
+
+* Frame ``k`` is GTSAM key ``k`` (a plain integer). Poses are ``(N, 3)`` float64 arrays
+  ``[x_m, y_m, yaw_rad]`` (``T_world_base`` of frames 0..N-1).
+* Factor order in every graph built by :func:`build_graph`: factor 0 is the prior on frame 0
+  (fixes the gauge at the first odometry pose), factors ``1..N-1`` are the odometry steps
+  ``(k, k+1)``, factors ``N..N+C-1`` are the loop constraints in the order given. So
+  ``odometry_factor_indices(N) = range(N)`` are the known inliers of a GNC solve, and
+  ``loop_factor_index(N, c) = N + c``.
+* A loop constraint ``(query, match)`` is ``BetweenFactorPose2(match, query, T_match_query)``.
+  Candidates without a relative pose (place recognition says "same place") use the identity with
+  the config's ``loop_default_information``.
+* Chi-square values are GTSAM's: ``chi2 = r^T Ω r`` with ``r = Logmap(z⁻¹ · (x_i⁻¹ x_j))``,
+  i.e. ``2 × factor.error``. The numpy functions here (:func:`between_chi2`, :func:`loop_chi2`,
+  :func:`odometry_chi2`) reproduce GTSAM's value without building a graph, for scoring many
+  hypotheses cheaply.
+
+``gtsam`` is imported lazily inside the functions that need it, so importing this module is cheap.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal, Sequence
+
+import numpy as np
+
+from lcv_replay.errors import VerificationError
+from lcv_replay.records import Pose2D
+
+if TYPE_CHECKING:  # pragma: no cover
+    import gtsam
+
+    from lcv_replay.verification.base import Constraint
+
+log = logging.getLogger(__name__)
+
+#: Standard deviation of the prior that fixes frame 0 (gauge freedom), metres and radians.
+PRIOR_SIGMA = 1e-6
+
+KernelKind = Literal["dcs", "gm", "cauchy", "huber", "tukey", "welsch"]
+
+
+class OptimisationFailed(VerificationError):
+    """GTSAM could not solve a pose graph (e.g. an indeterminant linear system)."""
+
+
+@dataclass(frozen=True)
+class RobustKernel:
+    """An M-estimator wrapped around every loop factor's Gaussian noise model.
+
+    Attributes:
+        kind: ``"dcs"`` (dynamic covariance scaling, scale = Φ), ``"gm"`` (Geman-McClure,
+            scale = c), ``"cauchy"`` (scale = c), ``"huber"``, ``"tukey"``, ``"welsch"``
+            (scale = k), all as in ``gtsam.noiseModel.mEstimator``.
+        scale: the kernel parameter, in whitened units.
+    """
+
+    kind: KernelKind
+    scale: float
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("dcs", "gm", "cauchy", "huber", "tukey", "welsch"):
+            raise VerificationError(
+                f"unknown robust kernel '{self.kind}'",
+                fix="use one of dcs, gm, cauchy, huber, tukey, welsch",
+            )
+        if not self.scale > 0:
+            raise VerificationError(f"robust kernel scale {self.scale!r} must be > 0")
+
+    def estimator(self):
+        """The ``gtsam.noiseModel.mEstimator`` instance."""
+        import gtsam
+
+        m = gtsam.noiseModel.mEstimator
+        make = {
+            "dcs": m.DCS,
+            "gm": m.GemanMcClure,
+            "cauchy": m.Cauchy,
+            "huber": m.Huber,
+            "tukey": m.Tukey,
+            "welsch": m.Welsch,
+        }[self.kind]
+        return make.Create(self.scale)
+
+
+@dataclass(frozen=True)
+class PoseGraphSolution:
+    """A solved pose graph.
+
+    Attributes:
+        poses: ``(N, 3)`` ``[x_m, y_m, yaw_rad]`` of frames 0..N-1.
+        error: GTSAM's graph error at the solution (``0.5 × Σ chi2``, robust loss if robust).
+        iterations: optimiser iterations, ``None`` where GTSAM does not report them (GNC).
+    """
+
+    poses: np.ndarray
+    error: float
+    iterations: int | None
+
+    @property
+    def chi2(self) -> float:
+        """Total whitened chi-square, ``2 × error``."""
+        return 2.0 * self.error
+
+
+# ----------------------------------------------------------------------------------------------
+# SE(2) on arrays (vectorised, the same maths as gtsam.Pose2)
+# ----------------------------------------------------------------------------------------------
+
+
+def wrap_angles(angles_rad: np.ndarray) -> np.ndarray:
+    """Wrap angles to ``[-pi, pi)`` (any shape)."""
+    return (np.asarray(angles_rad) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def se2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a ∘ b`` for ``(..., 3)`` pose arrays (broadcasting)."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.float64)
+    out[..., 0] = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    out[..., 1] = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    out[..., 2] = wrap_angles(a[..., 2] + b[..., 2])
+    return out
+
+
+def se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a⁻¹ ∘ b`` for ``(..., 3)`` pose arrays: with ``a = T_w_i``, ``b = T_w_j`` this is ``T_i_j``."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    dx = b[..., 0] - a[..., 0]
+    dy = b[..., 1] - a[..., 1]
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.float64)
+    out[..., 0] = c * dx + s * dy
+    out[..., 1] = -s * dx + c * dy
+    out[..., 2] = wrap_angles(b[..., 2] - a[..., 2])
+    return out
+
+
+def se2_logmap(pose: np.ndarray) -> np.ndarray:
+    """``Pose2.Logmap`` of ``(..., 3)`` poses: tangent vectors ``(..., 3)`` ``[v_x, v_y, ω]``."""
+    pose = np.asarray(pose, dtype=np.float64)
+    w = wrap_angles(pose[..., 2])
+    half = 0.5 * w
+    small = np.abs(w) < 1e-6
+    safe_half = np.where(small, 1.0, half)
+    k = np.where(small, 1.0 - w * w / 12.0, safe_half * np.cos(safe_half) / np.sin(safe_half))
+    x, y = pose[..., 0], pose[..., 1]
+    out = np.empty(pose.shape, dtype=np.float64)
+    out[..., 0] = k * x + half * y
+    out[..., 1] = -half * x + k * y
+    out[..., 2] = w
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Measurements and noise
+# ----------------------------------------------------------------------------------------------
+
+
+def upper6_to_matrix(upper6: Sequence[float]) -> np.ndarray:
+    """g2o upper triangle ``(I_xx, I_xy, I_xθ, I_yy, I_yθ, I_θθ)`` -> symmetric ``(3, 3)``."""
+    a, b, c, d, e, f = (float(v) for v in upper6)
+    return np.array([[a, b, c], [b, d, e], [c, e, f]], dtype=np.float64)
+
+
+def as_information_matrix(information, *, what: str) -> np.ndarray:
+    """Validate ``information`` (``(3, 3)`` or upper-6) as symmetric positive definite.
+
+    Raises:
+        VerificationError: naming ``what`` (e.g. ``"loop constraint 12 (query 530, match 40)"``)
+            when the matrix is malformed, not finite or not positive definite.
+    """
+    arr = np.asarray(information, dtype=np.float64)
+    if arr.shape == (6,):
+        arr = upper6_to_matrix(arr)
+    if arr.shape != (3, 3):
+        raise VerificationError(
+            f"{what}: information matrix has shape {arr.shape}, expected (3, 3) or 6 upper-triangle values"
+        )
+    if not np.all(np.isfinite(arr)):
+        raise VerificationError(f"{what}: information matrix has non-finite entries", fix="check the source log")
+    arr = 0.5 * (arr + arr.T)
+    try:
+        np.linalg.cholesky(arr)
+    except np.linalg.LinAlgError:
+        raise VerificationError(
+            f"{what}: information matrix is singular or not positive definite "
+            f"(eigenvalues {np.round(np.linalg.eigvalsh(arr), 6).tolist()})",
+            fix="give it a positive-definite information matrix, or drop it from the source",
+        ) from None
+    return arr
+
+
+def information_to_noise(information, *, what: str = "factor"):
+    """A ``gtsam.noiseModel.Gaussian`` from a ``(3, 3)`` (or upper-6) information matrix.
+
+    Raises:
+        VerificationError: naming ``what`` when the matrix is singular / not positive definite.
+    """
+    import gtsam
+
+    return gtsam.noiseModel.Gaussian.Information(as_information_matrix(information, what=what))
+
+
+def describe_constraint(constraint: "Constraint") -> str:
+    """``"loop constraint 12 (query 530, match 40)"``: how errors name a constraint."""
+    return f"loop constraint {constraint.id} (query {constraint.query_frame}, match {constraint.match_frame})"
+
+
+def loop_measurement(constraint: "Constraint", default_information: np.ndarray) -> tuple[Pose2D, np.ndarray]:
+    """The measured ``T_match_query`` and its ``(3, 3)`` information for a loop constraint.
+
+    A candidate without a relative pose ("same place", from place recognition) is the identity
+    with ``default_information``; a candidate without an information matrix uses
+    ``default_information`` too.
+
+    Raises:
+        VerificationError: naming the constraint when its information is singular.
+    """
+    cand = constraint.candidate
+    measured = cand.T_match_query if cand.T_match_query is not None else Pose2D(0.0, 0.0, 0.0)
+    info = cand.information if cand.information is not None else default_information
+    return measured, as_information_matrix(info, what=describe_constraint(constraint))
+
+
+def loop_arrays(
+    constraints: Sequence["Constraint"], default_information: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Constraints as arrays for vectorised chi-square.
+
+    Returns:
+        ``(match_idx (C,), query_idx (C,), measured (C, 3), information (C, 3, 3))``.
+    """
+    n = len(constraints)
+    match_idx = np.empty(n, dtype=np.int64)
+    query_idx = np.empty(n, dtype=np.int64)
+    measured = np.empty((n, 3), dtype=np.float64)
+    info = np.empty((n, 3, 3), dtype=np.float64)
+    for k, c in enumerate(constraints):
+        z, omega = loop_measurement(c, default_information)
+        match_idx[k], query_idx[k] = c.match_frame, c.query_frame
+        measured[k] = z
+        info[k] = omega
+    return match_idx, query_idx, measured, info
+
+
+def odometry_between(odom_poses: np.ndarray) -> np.ndarray:
+    """Relative odometry steps ``T_k_k+1``: ``(N, 3)`` cumulative poses -> ``(N-1, 3)``."""
+    odom = _check_poses(odom_poses, "odom_poses")
+    return se2_between(odom[:-1], odom[1:])
+
+
+def extend_by_odometry(poses: np.ndarray, odom_poses: np.ndarray) -> np.ndarray:
+    """Extend an estimate of frames ``0..M-1`` to frames ``0..N-1`` by chaining odometry.
+
+    Frame ``k >= M`` gets ``poses[M-1] ∘ (odom[M-1]⁻¹ ∘ odom[k])``, which is the chain of the
+    odometry steps after ``M-1``.
+
+    Args:
+        poses: ``(M, 3)`` estimate, ``1 <= M <= N``.
+        odom_poses: ``(N, 3)`` cumulative odometry.
+
+    Returns:
+        ``(N, 3)``; the first ``M`` rows are ``poses`` (a copy).
+    """
+    poses = _check_poses(poses, "poses")
+    odom = _check_poses(odom_poses, "odom_poses")
+    m, n = len(poses), len(odom)
+    if m > n or m == 0:
+        raise VerificationError(f"cannot extend an estimate of {m} frames by odometry of {n} frames")
+    out = np.empty((n, 3), dtype=np.float64)
+    out[:m] = poses
+    if n > m:
+        out[m:] = se2_compose(poses[m - 1], se2_between(odom[m - 1], odom[m:]))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Chi-square without a graph (numpy; equals GTSAM's 2 × factor.error for Gaussian factors)
+# ----------------------------------------------------------------------------------------------
+
+
+def between_residuals(poses: np.ndarray, i_idx: np.ndarray, j_idx: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    """Residuals ``Logmap(z⁻¹ · (x_i⁻¹ x_j))`` of between factors: ``(K,)`` indices -> ``(K, 3)``."""
+    rel = se2_between(poses[i_idx], poses[j_idx])
+    return se2_logmap(se2_between(measured, rel))
+
+
+def between_chi2(
+    poses: np.ndarray, i_idx: np.ndarray, j_idx: np.ndarray, measured: np.ndarray, information: np.ndarray
+) -> np.ndarray:
+    """Whitened chi-square ``r^T Ω r`` of between factors.
+
+    Args:
+        poses: ``(N, 3)``; ``i_idx``, ``j_idx``: ``(K,)`` frame indices; ``measured``: ``(K, 3)``
+            ``T_i_j``; ``information``: ``(3, 3)`` shared or ``(K, 3, 3)`` per factor.
+
+    Returns:
+        ``(K,)`` chi-square values (3 degrees of freedom each).
+    """
+    r = between_residuals(poses, i_idx, j_idx, measured)
+    if information.ndim == 2:
+        return np.einsum("ki,ij,kj->k", r, information, r)
+    return np.einsum("ki,kij,kj->k", r, information, r)
+
+
+def loop_chi2(poses: np.ndarray, constraint: "Constraint", information: np.ndarray) -> float:
+    """Whitened chi-square of one loop constraint at ``poses`` (``information`` is the default
+    used when the candidate carries none)."""
+    measured, omega = loop_measurement(constraint, information)
+    idx_m = np.array([constraint.match_frame])
+    idx_q = np.array([constraint.query_frame])
+    return float(between_chi2(poses, idx_m, idx_q, np.asarray(measured)[None, :], omega)[0])
+
+
+def odometry_chi2(poses: np.ndarray, odom_poses: np.ndarray, odom_information: np.ndarray) -> np.ndarray:
+    """Whitened chi-square of every odometry factor ``(k, k+1)``: ``(N, 3)`` -> ``(N-1,)``."""
+    n = len(odom_poses)
+    idx = np.arange(n - 1)
+    return between_chi2(poses[:n], idx, idx + 1, odometry_between(odom_poses), odom_information)
+
+
+# ----------------------------------------------------------------------------------------------
+# GTSAM graphs and solvers
+# ----------------------------------------------------------------------------------------------
+
+
+def odometry_factor_indices(num_frames: int) -> list[int]:
+    """Indices of the prior and odometry factors in a graph from :func:`build_graph`."""
+    return list(range(num_frames))
+
+
+def loop_factor_index(num_frames: int, position: int) -> int:
+    """Index of the ``position``-th loop constraint's factor in a graph from :func:`build_graph`."""
+    return num_frames + position
+
+
+def build_graph(
+    odom_poses: np.ndarray,
+    odom_information: np.ndarray,
+    constraints: Sequence["Constraint"],
+    *,
+    loop_default_information: np.ndarray,
+    robust: RobustKernel | None = None,
+):
+    """Pose graph of odometry plus ``constraints`` (see the module docstring for factor order).
+
+    Args:
+        odom_poses: ``(N, 3)`` cumulative odometry, N >= 1; the prior fixes frame 0 there.
+        odom_information: ``(3, 3)`` information of one odometry step.
+        constraints: loop constraints with both frames in ``0..N-1``.
+        loop_default_information: ``(3, 3)`` information of a candidate that carries none.
+        robust: kernel wrapped around every loop factor, or ``None`` for plain Gaussian.
+
+    Returns:
+        ``gtsam.NonlinearFactorGraph`` with ``N + len(constraints)`` factors.
+
+    Raises:
+        VerificationError: a constraint references a frame outside ``0..N-1``, or an
+            information matrix is singular (naming the constraint).
+    """
+    import gtsam
+
+    odom = _check_poses(odom_poses, "odom_poses")
+    n = len(odom)
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*odom[0]), gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)))
+    odom_noise = information_to_noise(odom_information, what="odometry")
+    for k, step in enumerate(odometry_between(odom)):
+        graph.add(gtsam.BetweenFactorPose2(k, k + 1, gtsam.Pose2(*step), odom_noise))
+    estimator = robust.estimator() if robust is not None else None
+    for c in constraints:
+        if not (0 <= c.match_frame < n and 0 <= c.query_frame < n):
+            raise VerificationError(
+                f"{describe_constraint(c)} references a frame outside 0..{n - 1}",
+                fix="add the frames before the constraints that reference them",
+            )
+        measured, omega = loop_measurement(c, loop_default_information)
+        noise = gtsam.noiseModel.Gaussian.Information(omega)
+        if estimator is not None:
+            noise = gtsam.noiseModel.Robust.Create(estimator, noise)
+        graph.add(gtsam.BetweenFactorPose2(c.match_frame, c.query_frame, gtsam.Pose2(*measured), noise))
+    return graph
+
+
+def initial_values(poses: np.ndarray):
+    """``gtsam.Values`` with ``Pose2`` key ``k`` = ``poses[k]`` for an ``(N, 3)`` array."""
+    import gtsam
+
+    poses = _check_poses(poses, "poses")
+    values = gtsam.Values()
+    for k, (x, y, yaw) in enumerate(poses.tolist()):
+        values.insert(k, gtsam.Pose2(x, y, yaw))
+    return values
+
+
+def values_to_poses(values, num_frames: int) -> np.ndarray:
+    """``(N, 3)`` array of the ``Pose2`` values with keys ``0..N-1``."""
+    import gtsam
+
+    if num_frames == 0:
+        return np.zeros((0, 3))
+    poses = gtsam.utilities.extractPose2(values)
+    if poses.shape[0] != num_frames:  # pragma: no cover - extractPose2 returns all Pose2s in key order
+        poses = np.array([[p.x(), p.y(), p.theta()] for p in (values.atPose2(k) for k in range(num_frames))])
+    return np.asarray(poses, dtype=np.float64)
+
+
+def optimise_lm(graph, initial: np.ndarray, *, max_iterations: int = 100, relative_error_tol: float = 1e-5) -> PoseGraphSolution:
+    """Levenberg-Marquardt from ``initial`` (``(N, 3)``, e.g. the parent hypothesis' estimate).
+
+    GTSAM's LM damps an indeterminant system instead of throwing; a GTSAM exception or a
+    non-finite solution (overflowing information, NaN start) is reported as a failure.
+
+    Raises:
+        OptimisationFailed: GTSAM raised (e.g. an indeterminant linear system) or the solution
+            is not finite.
+    """
+    import gtsam
+
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(int(max_iterations))
+    params.setRelativeErrorTol(float(relative_error_tol))
+    values = initial_values(initial)
+    try:
+        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        result = optimizer.optimize()
+    except RuntimeError as exc:
+        raise OptimisationFailed(f"Levenberg-Marquardt failed: {_first_line(exc)}") from exc
+    poses, error = values_to_poses(result, len(initial)), float(graph.error(result))
+    _finite_solution(poses, error, "Levenberg-Marquardt")
+    return PoseGraphSolution(poses, error, int(optimizer.iterations()))
+
+
+def optimise_gnc_tls(
+    graph,
+    initial: np.ndarray,
+    known_inliers: Sequence[int],
+    *,
+    weights_tol: float = 1e-9,
+    max_iterations: int = 100,
+    inlier_probability: float | None = None,
+) -> tuple[PoseGraphSolution, np.ndarray]:
+    """Graduated non-convexity with the truncated-least-squares loss (``gtsam.GncLMOptimizer``).
+
+    Args:
+        graph: Gaussian factors (no robust kernels); ``known_inliers`` (e.g.
+            :func:`odometry_factor_indices`) are never down-weighted.
+        initial: ``(N, 3)`` start.
+        weights_tol: GNC stops when weights change less than this; GTSAM's default 1e-4 stops
+            after 1-2 iterations on KITTI loop candidates with every weight ~1e-5, so 1e-9 runs the
+            schedule to binary weights.
+        inlier_probability: if given, the TLS barrier is the chi-square quantile of this
+            probability (3 dof), else GTSAM's default.
+
+    Returns:
+        ``(solution, weights (F,))``: ``weights[f]`` in [0, 1] for factor ``f`` (1 = inlier).
+
+    Raises:
+        OptimisationFailed: GTSAM failed.
+    """
+    import gtsam
+
+    params = gtsam.GncLMParams(gtsam.LevenbergMarquardtParams())
+    params.setLossType(gtsam.GncLossType.TLS)
+    params.setKnownInliers(list(int(i) for i in known_inliers))
+    params.setWeightsTol(float(weights_tol))
+    if int(max_iterations) != params.maxIterations:  # GTSAM prints a warning on every call
+        params.setMaxIterations(int(max_iterations))
+    values = initial_values(initial)
+    try:
+        optimizer = gtsam.GncLMOptimizer(graph, values, params)
+        if inlier_probability is not None:
+            optimizer.setInlierCostThresholdsAtProbability(float(inlier_probability))
+        result = optimizer.optimize()
+    except RuntimeError as exc:
+        raise OptimisationFailed(f"GNC-TLS failed: {_first_line(exc)}") from exc
+    weights = np.asarray(optimizer.getWeights(), dtype=np.float64)
+    poses, error = values_to_poses(result, len(initial)), float(graph.error(result))
+    _finite_solution(poses, error, "GNC-TLS")
+    return PoseGraphSolution(poses, error, None), weights
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+def _check_poses(poses: np.ndarray, name: str) -> np.ndarray:
+    arr = np.asarray(poses, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise VerificationError(f"{name} must have shape (N, 3) [x_m, y_m, yaw_rad], got {arr.shape}")
+    return arr
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    return " ".join(lines[:2]) if lines else type(exc).__name__
+
+
+def _finite_solution(poses: np.ndarray, error: float, what: str) -> None:
+    if not (np.all(np.isfinite(poses)) and np.isfinite(error)):
+        raise OptimisationFailed(f"{what} produced a non-finite solution (error {error})")
