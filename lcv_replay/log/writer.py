@@ -345,6 +345,15 @@ class LogWriter:
             int(query_frame),
         )
 
+    def declare_labels(self) -> None:
+        """Declare that this dataset has loop-closure labels, even if no true loop gets written.
+
+        Registers the ``/ground_truth/loops`` channel, so readers report ``has_labels`` (an empty
+        label set then means "every candidate is false", not "unknown").
+        """
+        self._check_open()
+        self._json_channel(fmt.TRUE_LOOPS_TOPIC, messages.TRUE_LOOP_SCHEMA, messages.TRUE_LOOP_JSON_SCHEMA)
+
     # -- internals -------------------------------------------------------------------------------
     def _check_open(self) -> None:
         if self._closed:
@@ -403,14 +412,17 @@ class LogWriter:
             data=message.SerializeToString(),
         )
 
-    def _write_json(self, topic: str, schema_name: str, schema: dict, data: bytes, stamp_ns: int, sequence: int) -> None:
+    def _json_channel(self, topic: str, schema_name: str, schema: dict) -> int:
         schema_id = self._schemas.get(schema_name)
         if schema_id is None:
             schema_id = self._mcap.register_schema(
                 name=schema_name, encoding=SchemaEncoding.JSONSchema, data=json.dumps(schema).encode()
             )
             self._schemas[schema_name] = schema_id
-        channel_id = self._channel(topic, schema_id, MessageEncoding.JSON)
+        return self._channel(topic, schema_id, MessageEncoding.JSON)
+
+    def _write_json(self, topic: str, schema_name: str, schema: dict, data: bytes, stamp_ns: int, sequence: int) -> None:
+        channel_id = self._json_channel(topic, schema_name, schema)
         self._mcap.add_message(
             channel_id=channel_id, log_time=stamp_ns, publish_time=stamp_ns, sequence=sequence, data=data
         )
