@@ -463,7 +463,8 @@ class G2oOptions:
             the measurement alone.
         original_loops_true: label the graph's own loops true when no ``true_loops`` file is given.
             ``None`` = automatic: true when outliers are injected (the Vertigo protocol spoils a
-            graph whose loops are all correct), unlabelled otherwise.
+            graph whose loops are all correct) unless the loops come from a place recognizer
+            (robustslam_kitti), unlabelled otherwise.
         rate_hz: frame rate used for the stamps.
         start_stamp_ns: stamp of frame 0.
         source: detector name written on the graph's candidates (default: ``DLoopDetector`` for
@@ -585,7 +586,12 @@ def prepare_g2o(graph_path: str | Path, options: G2oOptions = G2oOptions()) -> G
         if unknown:
             log.warning("%s: %d labelled true loops are not among the graph's candidates, e.g. %s", labels_path, len(unknown), sorted(unknown)[0])
     else:
-        label_originals = options.original_loops_true if options.original_loops_true is not None else bool(options.outliers)
+        # Automatic: a graph spoiled with outliers had all-true loops (the Vertigo protocol), unless
+        # its loops come from a place recognizer (robustslam_kitti), whose loops are mostly false.
+        auto = bool(options.outliers) and hints.source == "g2o"
+        label_originals = options.original_loops_true if options.original_loops_true is not None else auto
+        if options.original_loops_true is None and options.outliers and not auto:
+            log.warning("%s: the graph's loops come from %s and no --true-loops is given: the log has no labels", graph_path, hints.source)
         if label_originals:
             true_loops = frozenset(original_pairs)
 
