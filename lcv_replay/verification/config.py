@@ -45,6 +45,9 @@ class VerificationConfig:
     hypotheses_per_iteration: int = 10  # top-ranked hypotheses extended per iteration (sec. II-D)
     max_hypotheses: int = 200  # pruning bound on kept hypotheses
     seed: int = 0
+    # Pose-graph noise where the input carries none (not in the paper; g2o logs carry both):
+    odometry_sigmas: tuple[float, float, float] = (0.05, 0.05, 0.002)  # per-frame odometry sigma [m, m, rad], ~libviso2 at 10 Hz
+    loop_sigmas: tuple[float, float, float] = (2.0, 2.0, 0.2)  # identity "same place" loop [m, m, rad]: same place, not same pose (sec. II-A)
     baselines: BaselineConfig = field(default_factory=BaselineConfig)  # baseline verifiers
 
     def __post_init__(self) -> None:
@@ -55,3 +58,17 @@ class VerificationConfig:
         require(self.iterations_per_window >= 1, "verification.iterations_per_window", self.iterations_per_window, "an integer >= 1")
         require(self.hypotheses_per_iteration >= 1, "verification.hypotheses_per_iteration", self.hypotheses_per_iteration, "an integer >= 1")
         require(self.max_hypotheses >= self.hypotheses_per_iteration, "verification.max_hypotheses", self.max_hypotheses, "an integer >= hypotheses_per_iteration")
+        require(all(s > 0 for s in self.odometry_sigmas), "verification.odometry_sigmas", self.odometry_sigmas, "three numbers > 0 [m, m, rad]")
+        require(all(s > 0 for s in self.loop_sigmas), "verification.loop_sigmas", self.loop_sigmas, "three numbers > 0 [m, m, rad]")
+
+    def odometry_information_matrix(self) -> "np.ndarray":
+        """``(3, 3)`` information of one odometry step from :attr:`odometry_sigmas`."""
+        import numpy as np
+
+        return np.diag(1.0 / np.square(np.asarray(self.odometry_sigmas, dtype=np.float64)))
+
+    def loop_information_matrix(self) -> "np.ndarray":
+        """``(3, 3)`` information of a loop candidate that carries none, from :attr:`loop_sigmas`."""
+        import numpy as np
+
+        return np.diag(1.0 / np.square(np.asarray(self.loop_sigmas, dtype=np.float64)))
