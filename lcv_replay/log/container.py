@@ -76,7 +76,7 @@ class Container:
     chunks: list[ChunkInfo] = field(default_factory=list)
     entries: dict[int, np.ndarray] = field(default_factory=dict)  # channel id -> ENTRY_DTYPE, file order
     recovered_messages: int | None = None  # set by recover mode
-    skipped_chunks: int = 0  # chunks dropped by recover mode (CRC or decompression failure)
+    skipped_chunks: int = 0  # complete chunks dropped by recover mode (the first damaged one and all after it)
     chunks_decoded: int = 0  # chunk decompressions done for message reads (not index building)
     _cache: OrderedDict = field(default_factory=OrderedDict, repr=False)
     _cache_size: int = 4
@@ -361,11 +361,25 @@ def _scan_chunk(data: bytes, chunk_no: int, container: Container, path: Path) ->
     return {cid: np.array(r, dtype=ENTRY_DTYPE) for cid, r in rows.items()}
 
 
+def _remaining_chunks(f, pos: int, size: int):
+    """Yield the offsets of the complete chunk records from ``pos`` on (for counting what recover drops)."""
+    while pos + 9 <= size:
+        f.seek(pos)
+        opcode, length = struct.unpack("<BQ", f.read(9))
+        if pos + 9 + length > size or opcode in (_OP_DATA_END, _OP_FOOTER):
+            return
+        if opcode == _OP_CHUNK:
+            yield pos
+        pos += 9 + length
+
+
 def _linear_scan(f, container: Container, size: int, *, recover: bool) -> None:
     """Index the file by reading its records in order (no summary, or ``--recover``).
 
-    In recover mode, reading stops at the first record that is cut off; chunks that fail to
-    decompress or fail their CRC are skipped and counted in :attr:`Container.skipped_chunks`.
+    In recover mode, reading stops at the first record that is cut off or at the first chunk that
+    fails to decompress or fails its CRC (it and the chunks after it are counted in
+    :attr:`Container.skipped_chunks`): the salvaged part is always a prefix of the recording, so
+    frame indices keep their meaning.
     """
     path = container.path
     tables: dict[int, list[np.ndarray]] = {}
@@ -395,8 +409,15 @@ def _linear_scan(f, container: Container, size: int, *, recover: bool) -> None:
             except LogFormatError as exc:
                 if not recover:
                     raise
-                container.skipped_chunks += 1
-                log.warning("%s: skipping a damaged chunk: %s", path, exc.message)
+                # Stop at the first damaged chunk: keeping later chunks would renumber the frames
+                # after the gap and break the frame indices that loop candidates refer to.
+                container.skipped_chunks = 1 + sum(1 for _ in _remaining_chunks(f, pos + 9 + length, size))
+                log.warning(
+                    "%s: %s; keeping the %d chunks before it, dropping it and the %d chunks after it",
+                    path, exc.message, len(container.chunks), container.skipped_chunks - 1,
+                )
+                truncated_at = None
+                break
             else:
                 for channel_id, table in found.items():
                     tables.setdefault(channel_id, []).append(table)

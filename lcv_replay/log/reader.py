@@ -213,14 +213,24 @@ class LogReader:
     def loop_candidates(self) -> list[LoopCandidate]:
         """Every candidate of ``/loop_candidates``, sorted by (query_frame, file order)."""
         if self._candidates is None:
-            decoded = [self._decode_candidate(row) for row in self._tables.candidates]
+            t = self._tables
+            decoded = [
+                item
+                for row, frame in zip(t.candidates, t.candidate_frames)
+                for item in self._at_frame(int(frame), (row,), self._decode_candidate)
+            ]
             self._candidates = sorted(decoded, key=lambda c: c.query_frame)
         return list(self._candidates)
 
     def true_loops(self) -> set[tuple[int, int]]:
         """Labelled true pairs ``(query_frame, match_frame)`` of ``/ground_truth/loops``."""
         if self._true_loops is None:
-            self._true_loops = {self._decode_true_loop(row) for row in self._tables.true_loops}
+            t = self._tables
+            self._true_loops = {
+                item
+                for row, frame in zip(t.true_loops, t.true_loop_frames)
+                for item in self._at_frame(int(frame), (row,), self._decode_true_loop)
+            }
         return set(self._true_loops)
 
     def odometry(self) -> np.ndarray:
@@ -296,6 +306,12 @@ class LogReader:
     def _build_frames(self, tolerance_ns: int | None) -> tuple[_Tables, int, int]:
         e = self._topic_entries
         left, right, odom = e[fmt.LEFT_IMAGE_TOPIC], e[fmt.RIGHT_IMAGE_TOPIC], e[fmt.ODOM_TOPIC]
+        if not any(len(table) for table in self._c.entries.values()):
+            raise LogFormatError(
+                "the log is empty: it has no messages",
+                path=self.path,
+                fix="re-record it; the recorder produced no frames",
+            )
         if left is None and odom is None:
             present = sorted({ch.topic for ch in self._c.channels.values()})
             what = (
@@ -343,6 +359,8 @@ class LogReader:
                 tables.stamps_ns = tables.left["log_time"].astype(np.int64)
             if odom is not None and len(odom):
                 tables.odom = _join(tables.stamps_ns, odom, tolerance_ns)
+                if self._c.recovered_messages is not None:
+                    self._trim_incomplete_tail(tables)
         else:
             tables.odom = odom
         gt = e[fmt.GROUND_TRUTH_TOPIC]
@@ -356,6 +374,9 @@ class LogReader:
             frames = np.full(len(table), -1, dtype=np.int64)
             ia, ib = _match(table["log_time"], tables.stamps_ns, tolerance_ns, one_to_one=False)
             frames[ia] = ib
+            if np.any(frames < 0) and self._c.recovered_messages is not None:
+                log.warning("%s: dropped %d %s messages of frames that were not recovered", self.path, int(np.sum(frames < 0)), topic)
+                table, frames = table[frames >= 0], frames[frames >= 0]
             if np.any(frames < 0):
                 k = int(np.flatnonzero(frames < 0)[0])
                 raise LogFormatError(
@@ -366,6 +387,21 @@ class LogReader:
             setattr(tables, name + "s", table)
             setattr(tables, name + "_frames", frames)
         return tables, dropped, tolerance_ns
+
+    def _trim_incomplete_tail(self, tables: _Tables) -> None:
+        """Recover mode: drop the last frames whose odometry was in the lost part of the file."""
+        have = np.flatnonzero(tables.odom["chunk"] != _MISSING)
+        keep = int(have[-1]) + 1 if len(have) else 0
+        if keep == len(tables.stamps_ns):
+            return
+        log.warning("%s: dropped the last %d frames: their odometry was not recovered", self.path, len(tables.stamps_ns) - keep)
+        if keep == 0:
+            raise LogFormatError("no complete frame could be recovered", path=self.path, fix="the file is damaged beyond repair; re-record it")
+        tables.stamps_ns = tables.stamps_ns[:keep]
+        for name in ("left", "right", "odom"):
+            table = getattr(tables, name)
+            if table is not None:
+                setattr(tables, name, table[:keep])
 
     def _build_info(self) -> LogInfo:
         c, t = self._c, self._tables
