@@ -27,6 +27,7 @@ class VoConfig:
     Tracking and pose:
         klt_window_px: Lucas-Kanade window side (odd).
         klt_levels: pyramid levels above the full image (3 covers ~80 px motions at 21 px windows).
+        klt_iterations: Lucas-Kanade iterations per pyramid level (stops earlier at 0.01 px).
         fb_check_px: forward-backward error allowed for a temporal track.
         ransac_reprojection_px: PnP RANSAC inlier threshold (libviso2: 2 px).
         ransac_iterations: PnP RANSAC iterations.
@@ -51,6 +52,7 @@ class VoConfig:
     lr_check_px: float = 0.5
     klt_window_px: int = 21
     klt_levels: int = 3
+    klt_iterations: int = 30
     fb_check_px: float = 0.5
     ransac_reprojection_px: float = 1.5
     ransac_iterations: int = 150
@@ -73,6 +75,7 @@ class VoConfig:
         require(self.lr_check_px > 0, "vo.lr_check_px", self.lr_check_px, "a number > 0")
         require(self.klt_window_px >= 5 and self.klt_window_px % 2 == 1, "vo.klt_window_px", self.klt_window_px, "an odd integer >= 5")
         require(0 <= self.klt_levels <= 8, "vo.klt_levels", self.klt_levels, "an integer in 0..8")
+        require(self.klt_iterations >= 1, "vo.klt_iterations", self.klt_iterations, "an integer >= 1")
         require(self.fb_check_px > 0, "vo.fb_check_px", self.fb_check_px, "a number > 0")
         require(self.ransac_reprojection_px > 0, "vo.ransac_reprojection_px", self.ransac_reprojection_px, "a number > 0")
         require(self.ransac_iterations >= 1, "vo.ransac_iterations", self.ransac_iterations, "an integer >= 1")

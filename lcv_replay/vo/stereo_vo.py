@@ -89,6 +89,20 @@ class VoQuality:
     def fallback(self) -> bool:
         return self.status.is_fallback
 
+    def as_dict(self) -> dict:
+        """JSON-ready fields (``None`` for a NaN error)."""
+        rmse = self.reprojection_rmse_px
+        return {
+            "index": self.index,
+            "status": self.status.value,
+            "fallback": self.fallback,
+            "n_stereo": self.n_stereo,
+            "n_tracked": self.n_tracked,
+            "n_inliers": self.n_inliers,
+            "reprojection_rmse_px": None if math.isnan(rmse) else round(rmse, 4),
+            "keyframe_index": self.keyframe_index,
+        }
+
 
 @dataclass(frozen=True)
 class VoStep:
@@ -274,9 +288,6 @@ def detect_features(grey: np.ndarray, config: VoConfig) -> np.ndarray:
     return pixels[keep]
 
 
-_KLT_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
-
-
 def track_points(
     grey_from: np.ndarray,
     grey_to: np.ndarray,
@@ -298,18 +309,19 @@ def track_points(
     if n == 0:
         return np.zeros((0, 2), np.float32), np.zeros(0, bool)
     win = (config.klt_window_px, config.klt_window_px)
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, config.klt_iterations, 0.01)
     p0 = np.ascontiguousarray(pixels_px, dtype=np.float32).reshape(-1, 1, 2)
     if guess_px is None:
-        p1, st1, _ = cv2.calcOpticalFlowPyrLK(grey_from, grey_to, p0, None, winSize=win, maxLevel=config.klt_levels, criteria=_KLT_CRITERIA)
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(grey_from, grey_to, p0, None, winSize=win, maxLevel=config.klt_levels, criteria=criteria)
     else:
         p1 = np.ascontiguousarray(guess_px, dtype=np.float32).reshape(-1, 1, 2).copy()
         p1, st1, _ = cv2.calcOpticalFlowPyrLK(
             grey_from, grey_to, p0, p1, winSize=win, maxLevel=config.klt_levels,
-            criteria=_KLT_CRITERIA, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+            criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
     p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
         grey_to, grey_from, p1, p0.copy(), winSize=win, maxLevel=config.klt_levels,
-        criteria=_KLT_CRITERIA, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
     )
     roundtrip = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
     ok = (st1.reshape(-1) == 1) & (st2.reshape(-1) == 1) & (roundtrip <= max_roundtrip_px)
@@ -681,7 +693,7 @@ class VoResult:
             "fallback_frames": len(self.fallback_frames),
             "status_counts": self.status_counts(),
             "median_inliers": float(np.median([q.n_inliers for q in ok])) if ok else 0.0,
-            "median_reprojection_rmse_px": float(np.median([q.reprojection_rmse_px for q in ok])) if ok else math.nan,
+            "median_reprojection_rmse_px": float(np.median([q.reprojection_rmse_px for q in ok])) if ok else None,
             "elapsed_s": self.elapsed_s,
             "pairs_per_s": self.pairs_per_s,
         }
