@@ -4,29 +4,34 @@ Conventions (see :mod:`lcv_replay.records`): planar poses are ``(x_m, y_m, yaw_r
 (x forward, y left, yaw counter-clockwise about +z). Arrays of planar poses have shape ``(N, 3)``;
 arrays of rigid transforms have shape ``(N, 4, 4)``.
 
-**3-D -> planar projection.** A 3-D pose ``T_world_sensor`` is first expressed in a body frame with
-z up (``T_body0_body = R_body_sensor · T_sensor0_sensor · R_body_sensorᵀ``; the world frame is the
-first body frame rotated by the same fixed rotation), then projected: ``x_m``, ``y_m`` are the
-translation's x and y, and ``yaw_rad = atan2(R[1, 0], R[0, 0])``, the heading of the body x axis in
-the x-y plane (the z-y-x Euler yaw). Height, roll and pitch are dropped.
+**3-D -> planar projection** (:func:`project_to_planar`). A 3-D pose ``T_world_sensor`` is turned
+into a z-up body in a z-up world, ``T = R_planar_world · T_world_sensor · R_sensor_body``, then
+projected: ``x_m``, ``y_m`` are the translation's x and y, and ``yaw_rad = atan2(R[1, 0], R[0, 0])``,
+the heading of the body x axis in the ground plane (the z-y-x Euler yaw). Height, roll and pitch
+are dropped.
 
-* KITTI (and most visual odometry) poses are of a camera with x right, y down, z forward:
-  body x = camera z, body y = -camera x, body z = -camera y (:data:`R_BODY_CAMERA`).
-* EuRoC ground truth and ROS odometry are already of a z-up body (:data:`R_BODY_IDENTITY`).
+* KITTI poses (and camera-centric visual odometry) are of a camera with x right, y down,
+  z forward, in the frame of the first camera: body x = camera z, body y = -camera x,
+  body z = -camera y (:data:`R_BODY_CAMERA`), applied on both sides.
+* EuRoC ground truth is of the IMU in a z-up world: the body is the left camera
+  (``T_world_imu · T_imu_cam0``) with the camera rotation on the right side only.
+* ROS odometry (``base_link`` in ``odom``, REP-103) is already z-up on both sides: identities.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import re
+import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Protocol, Sequence
+from typing import Any, Callable, Iterable, Literal, Protocol, Sequence
 
 import numpy as np
 
 from lcv_replay.errors import RecorderError
-from lcv_replay.records import Pose2D
+from lcv_replay.records import LoopCandidate, Pose2D, StereoCalibration
 
 #: ``R_body_camera`` for a camera with x right, y down, z forward (KITTI, OpenCV).
 R_BODY_CAMERA = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -136,21 +141,32 @@ def poses_to_records(poses: np.ndarray) -> list[Pose2D]:
     return [Pose2D(float(x), float(y), float(t)) for x, y, t in np.asarray(poses, dtype=np.float64)]
 
 
-def project_to_planar(T_world_sensor: np.ndarray, R_body_sensor: np.ndarray = R_BODY_CAMERA) -> np.ndarray:
+def project_to_planar(
+    T_world_sensor: np.ndarray,
+    *,
+    R_sensor_body: np.ndarray = R_BODY_CAMERA.T,
+    R_planar_world: np.ndarray = R_BODY_CAMERA,
+) -> np.ndarray:
     """Project 3-D poses to planar body poses (see the module docstring).
+
+    ``T_planar_body = R_planar_world · T_world_sensor · R_sensor_body`` (rotations only on the
+    sides), then ``x_m, y_m`` = translation x, y and ``yaw_rad = atan2(R[1, 0], R[0, 0])``.
+    The defaults suit KITTI and camera-centric visual odometry: the world is the first camera frame
+    and the sensor is a camera (x right, y down, z forward). For a z-up world and a z-up body pass
+    identities (:data:`R_BODY_IDENTITY`).
 
     Args:
         T_world_sensor: ``(N, 4, 4)`` rigid transforms of the sensor in its world frame.
-        R_body_sensor: ``(3, 3)`` rotation taking sensor-frame vectors to the z-up body frame.
+        R_sensor_body: ``(3, 3)`` rotation of the planar body axes in the sensor frame.
+        R_planar_world: ``(3, 3)`` rotation taking world vectors to the z-up planar world.
 
     Returns:
-        ``(N, 3)`` planar poses ``(x_m, y_m, yaw_rad)`` in the z-up world frame aligned with the
-        sensor's world frame by the same rotation.
+        ``(N, 3)`` planar poses ``(x_m, y_m, yaw_rad)``.
     """
     T = np.asarray(T_world_sensor, dtype=np.float64).reshape(-1, 4, 4)
-    R_bs = np.asarray(R_body_sensor, dtype=np.float64)
-    rot = np.einsum("ij,njk,lk->nil", R_bs, T[:, :3, :3], R_bs)  # R_bs · R · R_bsᵀ
-    trans = T[:, :3, 3] @ R_bs.T
+    R_pw = np.asarray(R_planar_world, dtype=np.float64)
+    rot = np.einsum("ij,njk,kl->nil", R_pw, T[:, :3, :3], np.asarray(R_sensor_body, dtype=np.float64))
+    trans = T[:, :3, 3] @ R_pw.T
     return np.stack([trans[:, 0], trans[:, 1], np.arctan2(rot[:, 1, 0], rot[:, 0, 0])], axis=1)
 
 
@@ -317,3 +333,232 @@ def require_path(path: str | Path, *, what: str, fix: str, folder: bool = False)
         problem = f"{what} not found" if not path.exists() else f"{what} is not a {'folder' if folder else 'file'}"
         raise RecorderError(problem, path=path, fix=fix)
     return path
+
+
+def interpolate_planar(stamps_ns: np.ndarray, poses: np.ndarray, query_ns: np.ndarray, max_gap_ns: int) -> np.ndarray:
+    """Planar poses at ``query_ns`` by linear interpolation (yaw along the shorter arc).
+
+    Args:
+        stamps_ns: ``(M,)`` increasing stamps of ``poses``.
+        poses: ``(M, 3)`` planar poses.
+        query_ns: ``(N,)`` stamps to interpolate at.
+        max_gap_ns: a query more than this far from the nearest pose, or between two poses more
+            than this far apart, gets a NaN row.
+
+    Returns:
+        ``(N, 3)`` poses, NaN where no pose is close enough.
+    """
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    query = np.asarray(query_ns, dtype=np.int64)
+    out = np.full((len(query), 3), np.nan)
+    if len(stamps) == 0:
+        return out
+    hi = np.clip(np.searchsorted(stamps, query), 1, max(len(stamps) - 1, 1))
+    lo = hi - 1
+    if len(stamps) == 1:
+        near = np.abs(stamps[0] - query) <= max_gap_ns
+        out[near] = poses[0]
+        return out
+    t0, t1 = stamps[lo], stamps[hi]
+    w = np.clip((query - t0) / np.maximum(t1 - t0, 1), 0.0, 1.0)
+    dyaw = wrap_angles(poses[hi, 2] - poses[lo, 2])
+    interp = np.stack(
+        [
+            poses[lo, 0] + w * (poses[hi, 0] - poses[lo, 0]),
+            poses[lo, 1] + w * (poses[hi, 1] - poses[lo, 1]),
+            wrap_angles(poses[lo, 2] + w * dyaw),
+        ],
+        axis=1,
+    )
+    inside = (query >= t0) & (query <= t1) & (t1 - t0 <= max_gap_ns)
+    nearest = np.where(np.abs(query - t0) <= np.abs(t1 - query), lo, hi)
+    close = np.abs(stamps[nearest] - query) <= max_gap_ns
+    out[close] = poses[nearest[close]]
+    out[inside] = interp[inside]
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Images and calibration
+# ---------------------------------------------------------------------------------------------
+
+
+def read_image(path: Path) -> np.ndarray:
+    """Read an image file as ``(H, W)`` uint8 grey or ``(H, W, 3)`` uint8 RGB.
+
+    16-bit images are scaled to 8 bits; 4-channel images lose alpha. Raises
+    :class:`RecorderError` naming the file when it cannot be decoded.
+    """
+    import cv2
+
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise RecorderError("cannot read the image (missing, unreadable or not an image)", path=path, fix="check the file")
+    if image.dtype == np.uint16:
+        image = (image >> 8).astype(np.uint8)
+    elif image.dtype != np.uint8:
+        raise RecorderError(f"unsupported image depth {image.dtype}", path=path, fix="use 8- or 16-bit images")
+    if image.ndim == 3:
+        if image.shape[2] == 1:
+            image = image[:, :, 0]
+        else:
+            image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGB if image.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    return image
+
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pgm", ".ppm", ".bmp", ".tif", ".tiff")
+
+
+def list_images(folder: Path, *, what: str) -> list[Path]:
+    """Image files of ``folder`` sorted by name; :class:`RecorderError` if the folder is missing or empty."""
+    folder = require_path(folder, what=what, fix="check the path", folder=True)
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    if not files:
+        raise RecorderError(f"{what} holds no images ({', '.join(IMAGE_SUFFIXES)})", path=folder, fix="check the path")
+    return files
+
+
+def calibration_from_projections(P_left: np.ndarray, P_right: np.ndarray, width_px: int, height_px: int) -> StereoCalibration:
+    """Rectified stereo calibration from two ``(3, 4)`` projection matrices (KITTI ``P0/P1``, ROS ``P``).
+
+    ``baseline_m = (P_left[0, 3] - P_right[0, 3]) / fx`` (KITTI's P2/P3 carry an offset on both).
+    """
+    P_left = np.asarray(P_left, dtype=np.float64).reshape(3, 4)
+    P_right = np.asarray(P_right, dtype=np.float64).reshape(3, 4)
+    fx = float(P_left[0, 0])
+    return StereoCalibration(
+        width_px=int(width_px),
+        height_px=int(height_px),
+        fx_px=fx,
+        fy_px=float(P_left[1, 1]),
+        cx_px=float(P_left[0, 2]),
+        cy_px=float(P_left[1, 2]),
+        baseline_m=float((P_left[0, 3] - P_right[0, 3]) / fx),
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Writing: one loop for every recorder
+# ---------------------------------------------------------------------------------------------
+
+ImageFormat = Literal["png", "jpeg", "raw"]
+
+
+@dataclass(frozen=True)
+class SourceFrame:
+    """One frame of a source dataset, images loaded on demand.
+
+    ``left``/``right`` return ``(H, W)`` or ``(H, W, 3)`` uint8 arrays (they may run in a worker
+    thread); ``odom``/``ground_truth`` are planar poses or ``None``.
+    """
+
+    stamp_ns: int
+    left: Callable[[], np.ndarray] | None = None
+    right: Callable[[], np.ndarray] | None = None
+    odom: Pose2D | None = None
+    ground_truth: Pose2D | None = None
+
+
+@dataclass(frozen=True)
+class LogHeader:
+    """Per-log arguments of the writer."""
+
+    dataset: str
+    recorder: str
+    nominal_rate_hz: float
+    config: dict
+    calibration: StereoCalibration | None = None
+    odometry_information: np.ndarray | None = None
+    image_format: ImageFormat = "png"
+    jpeg_quality: int = 95
+
+
+def nominal_rate_hz(stamps_ns: np.ndarray, default: float = 10.0) -> float:
+    """``1 / median frame period`` of ``(N,)`` stamps, or ``default`` with fewer than 2 frames."""
+    stamps = np.asarray(stamps_ns, dtype=np.int64)
+    if len(stamps) < 2:
+        return default
+    period = float(np.median(np.diff(stamps)))
+    return 1e9 / period if period > 0 else default
+
+
+def write_log(
+    out_path: str | Path,
+    header: LogHeader,
+    frames: Sequence[SourceFrame],
+    *,
+    candidates: Sequence[LoopCandidate] = (),
+    true_loops: Iterable[tuple[int, int]] = (),
+    force: bool = False,
+    progress: ProgressCallback | None = None,
+    started: float | None = None,
+    prefetch: int = 4,
+) -> RecordStats:
+    """Write ``frames`` (and candidates/labels at their query frames) through the one log writer.
+
+    Images are loaded ``prefetch`` frames ahead on a small thread pool (decoding and rectifying in
+    OpenCV release the GIL), while the writer encodes in this thread.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    from lcv_replay.log.writer import LogWriter
+
+    started = time.perf_counter() if started is None else started
+    n = len(frames)
+    by_query: dict[int, list[LoopCandidate]] = {}
+    for cand in candidates:
+        by_query.setdefault(cand.query_frame, []).append(cand)
+    labels_by_query: dict[int, list[tuple[int, int]]] = {}
+    for pair in sorted(set(true_loops)):
+        labels_by_query.setdefault(pair[0], []).append(pair)
+
+    def load(frame: SourceFrame) -> tuple[np.ndarray | None, np.ndarray | None]:
+        return (frame.left() if frame.left else None, frame.right() if frame.right else None)
+
+    has_images = any(f.left is not None for f in frames[:1])
+    with contextlib.ExitStack() as stack:
+        writer = stack.enter_context(
+            LogWriter(
+                out_path,
+                force=force,
+                dataset=header.dataset,
+                recorder=header.recorder,
+                nominal_rate_hz=header.nominal_rate_hz,
+                recorder_config=header.config,
+                image_format=header.image_format,
+                jpeg_quality=header.jpeg_quality,
+                odometry_information=header.odometry_information,
+            )
+        )
+        pool = stack.enter_context(ThreadPoolExecutor(max_workers=2)) if has_images else None
+        pending: dict[int, Any] = {}
+        if header.calibration is not None and n:
+            writer.write_calibration(header.calibration, frames[0].stamp_ns)
+        for i, frame in enumerate(frames):
+            if pool is not None:
+                for k in range(i, min(n, i + prefetch + 1)):
+                    if k not in pending:
+                        pending[k] = pool.submit(load, frames[k])
+                left, right = pending.pop(i).result()
+            else:
+                left, right = None, None
+            writer.write_frame(i, frame.stamp_ns, left=left, right=right, odom=frame.odom, ground_truth=frame.ground_truth)
+            for cand in by_query.get(i, ()):
+                writer.write_loop_candidate(cand, frame.stamp_ns)
+            for query, match in labels_by_query.get(i, ()):
+                writer.write_true_loop(query, match, frame.stamp_ns)
+            if progress is not None and (has_images or i % 256 == 0 or i == n - 1):
+                progress(i + 1, n)
+    out_path = Path(out_path)
+    return RecordStats(
+        path=out_path,
+        frames=n,
+        candidates=len(candidates),
+        true_loops=sum(len(v) for v in labels_by_query.values()),
+        size_bytes=out_path.stat().st_size,
+        elapsed_s=time.perf_counter() - started,
+        has_images=has_images,
+        has_odometry=any(f.odom is not None for f in frames[:1]),
+        has_ground_truth=any(f.ground_truth is not None for f in frames),
+    )

@@ -41,14 +41,17 @@ import numpy as np
 from lcv_replay.errors import RecorderError
 from lcv_replay.records import LoopCandidate, Pose2D
 from recorders.common import (
+    LogHeader,
     ProgressCallback,
     RecordStats,
+    SourceFrame,
     is_number,
     compose_chain,
     poses_to_records,
     read_numeric_rows,
     relative_steps,
     require_path,
+    write_log,
 )
 
 log = logging.getLogger(__name__)
@@ -624,47 +627,23 @@ def record_g2o(
         OutputError: ``out_path`` exists (without ``force``) or cannot be written.
     """
     from lcv_replay.fileio import check_output_path
-    from lcv_replay.log.writer import LogWriter
 
     started = time.perf_counter()
     out_path = check_output_path(out_path, force=force)
     rec = prepare_g2o(graph_path, options)
-    n = rec.graph.num_poses
-    by_query: dict[int, list[LoopCandidate]] = {}
-    for cand in rec.candidates:
-        by_query.setdefault(cand.query_frame, []).append(cand)
-    labels_by_query: dict[int, list[tuple[int, int]]] = {}
-    for pair in sorted(rec.true_loops or ()):
-        labels_by_query.setdefault(pair[0], []).append(pair)
-    odom = poses_to_records(rec.odometry)
     gt = poses_to_records(rec.ground_truth) if rec.ground_truth is not None else None
-    stamps = [int(s) for s in rec.stamps_ns]
-
-    with LogWriter(
-        out_path,
-        force=force,
+    frames = [
+        SourceFrame(int(stamp), odom=odom, ground_truth=gt[i] if gt is not None else None)
+        for i, (stamp, odom) in enumerate(zip(rec.stamps_ns, poses_to_records(rec.odometry)))
+    ]
+    header = LogHeader(
         dataset=rec.dataset,
         recorder="g2o",
         nominal_rate_hz=options.rate_hz,
-        recorder_config=rec.config,
+        config=rec.config,
         odometry_information=rec.graph.odometry_information_matrix(),
-    ) as writer:
-        for i in range(n):
-            writer.write_frame(i, stamps[i], odom=odom[i], ground_truth=gt[i] if gt is not None else None)
-            for cand in by_query.get(i, ()):
-                writer.write_loop_candidate(cand, stamps[i])
-            for query, match in labels_by_query.get(i, ()):
-                writer.write_true_loop(query, match, stamps[i])
-            if progress is not None and (i % 256 == 0 or i == n - 1):
-                progress(i + 1, n)
-    return RecordStats(
-        path=out_path,
-        frames=n,
-        candidates=len(rec.candidates),
-        true_loops=len(rec.true_loops or ()),
-        size_bytes=out_path.stat().st_size,
-        elapsed_s=time.perf_counter() - started,
-        has_images=False,
-        has_odometry=True,
-        has_ground_truth=gt is not None,
+    )
+    return write_log(
+        out_path, header, frames, candidates=rec.candidates, true_loops=rec.true_loops or (),
+        force=force, progress=progress, started=started,
     )

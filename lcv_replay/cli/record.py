@@ -26,6 +26,18 @@ class OutlierModeChoice(str, enum.Enum):
     group = "group"
 
 
+class PoseFormatChoice(str, enum.Enum):
+    auto = "auto"
+    kitti = "kitti"
+    tum = "tum"
+
+
+class ImageFormatChoice(str, enum.Enum):
+    png = "png"
+    jpeg = "jpeg"
+    raw = "raw"
+
+
 class LoopMeasurementsChoice(str, enum.Enum):
     as_recorded = "as-recorded"
     same_place = "same-place"
@@ -34,6 +46,10 @@ class LoopMeasurementsChoice(str, enum.Enum):
 OUT_OPTION = typer.Option(..., "--out", "-o", help="Output .mcap file (written atomically).")
 FORCE_OPTION = typer.Option(False, "--force", "-f", help="Overwrite OUT if it exists.")
 QUIET_OPTION = typer.Option(False, "--quiet", "-q", help="No progress bar and no summary line.")
+IMAGE_FORMAT_OPTION = typer.Option(ImageFormatChoice.png, "--image-format", help="png (lossless), jpeg or raw.")
+JPEG_QUALITY_OPTION = typer.Option(95, "--jpeg-quality", min=1, max=100, help="JPEG quality with --image-format jpeg.")
+START_FRAME_OPTION = typer.Option(0, "--start-frame", min=0, help="First source frame to record.")
+MAX_FRAMES_OPTION = typer.Option(None, "--max-frames", min=1, help="Record at most this many frames.")
 
 
 @contextlib.contextmanager
@@ -108,4 +124,43 @@ def record_g2o_command(
     )
     with recording_progress("g2o", quiet=quiet) as progress:
         stats = record_g2o(graph, out, options, force=force, progress=progress)
+    _finish(stats, quiet)
+
+
+@record_app.command("kitti")
+def record_kitti_command(
+    source: Path = typer.Argument(..., help="KITTI sequence folder (sequences/SS) or the dataset root with --sequence."),
+    out: Path = OUT_OPTION,
+    sequence: Optional[str] = typer.Option(None, "--sequence", help="Sequence name (e.g. 06) when SOURCE is the dataset root."),
+    odometry: Optional[Path] = typer.Option(None, "--odometry", help="Odometry of the left camera: KITTI pose file or TUM file (stamps = times.txt)."),
+    odometry_format: PoseFormatChoice = typer.Option(PoseFormatChoice.auto, "--odometry-format", help="auto (by column count), kitti or tum."),
+    ground_truth: Optional[Path] = typer.Option(None, "--ground-truth", help="Ground-truth poses (default: ROOT/poses/SS.txt if present)."),
+    auto_ground_truth: bool = typer.Option(True, "--auto-ground-truth/--no-ground-truth", help="Use ROOT/poses/SS.txt when --ground-truth is not given."),
+    color: bool = typer.Option(False, "--color", help="Record image_2/image_3 (P2/P3) instead of the grey pair."),
+    start_frame: int = START_FRAME_OPTION,
+    max_frames: Optional[int] = MAX_FRAMES_OPTION,
+    stamp_tolerance_s: float = typer.Option(0.01, "--stamp-tolerance", help="TUM stamps must match times.txt within this many seconds."),
+    image_format: ImageFormatChoice = IMAGE_FORMAT_OPTION,
+    jpeg_quality: int = JPEG_QUALITY_OPTION,
+    force: bool = FORCE_OPTION,
+    quiet: bool = QUIET_OPTION,
+) -> None:
+    """Record a KITTI odometry sequence (stereo images, calibration, odometry, ground truth)."""
+    from recorders.kitti import KittiOptions, record_kitti
+
+    options = KittiOptions(
+        sequence=sequence,
+        odometry=odometry,
+        odometry_format=odometry_format.value,  # type: ignore[arg-type]
+        ground_truth=ground_truth,
+        auto_ground_truth=auto_ground_truth,
+        color=color,
+        start_frame=start_frame,
+        max_frames=max_frames,
+        stamp_tolerance_s=stamp_tolerance_s,
+        image_format=image_format.value,  # type: ignore[arg-type]
+        jpeg_quality=jpeg_quality,
+    )
+    with recording_progress("kitti", quiet=quiet) as progress:
+        stats = record_kitti(source, out, options, force=force, progress=progress)
     _finish(stats, quiet)
