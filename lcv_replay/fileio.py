@@ -40,6 +40,10 @@ def atomic_output(path: str | Path, *, force: bool = False) -> Iterator[Path]:
     path = check_output_path(path, force=force)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
     os.close(fd)
+    # mkstemp creates 0600 files; give the output the usual permissions (0666 minus the umask).
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp_name, 0o666 & ~umask)
     tmp = Path(tmp_name)
     try:
         yield tmp
