@@ -164,3 +164,38 @@ def record_kitti_command(
     with recording_progress("kitti", quiet=quiet) as progress:
         stats = record_kitti(source, out, options, force=force, progress=progress)
     _finish(stats, quiet)
+
+
+@record_app.command("euroc")
+def record_euroc_command(
+    source: Path = typer.Argument(..., help="EuRoC sequence folder holding mav0 (or mav0 itself)."),
+    out: Path = OUT_OPTION,
+    rectify: bool = typer.Option(True, "--rectify/--no-rectify", help="Rectify the stereo pair (cv2.stereoRectify) and write the rectified calibration; --no-rectify writes raw distorted images."),
+    odometry: Optional[Path] = typer.Option(None, "--odometry", help="Left-camera odometry (TUM with stamps in seconds, or KITTI format, one line per frame)."),
+    odometry_format: PoseFormatChoice = typer.Option(PoseFormatChoice.auto, "--odometry-format", help="auto, kitti or tum."),
+    ground_truth: bool = typer.Option(True, "--ground-truth/--no-ground-truth", help="Use mav0/state_groundtruth_estimate0 when present."),
+    stereo_tolerance_ns: int = typer.Option(1_000_000, "--stereo-tolerance-ns", min=0, help="Left/right stamps closer than this form a pair."),
+    start_frame: int = START_FRAME_OPTION,
+    max_frames: Optional[int] = MAX_FRAMES_OPTION,
+    image_format: ImageFormatChoice = IMAGE_FORMAT_OPTION,
+    jpeg_quality: int = JPEG_QUALITY_OPTION,
+    force: bool = FORCE_OPTION,
+    quiet: bool = QUIET_OPTION,
+) -> None:
+    """Record a EuRoC (ASL layout) stereo sequence, rectified, with its ground truth."""
+    from recorders.euroc import EurocOptions, record_euroc
+
+    options = EurocOptions(
+        rectify=rectify,
+        odometry=odometry,
+        odometry_format=odometry_format.value,  # type: ignore[arg-type]
+        ground_truth=ground_truth,
+        stereo_tolerance_ns=stereo_tolerance_ns,
+        start_frame=start_frame,
+        max_frames=max_frames,
+        image_format=image_format.value,  # type: ignore[arg-type]
+        jpeg_quality=jpeg_quality,
+    )
+    with recording_progress("euroc", quiet=quiet) as progress:
+        stats = record_euroc(source, out, options, force=force, progress=progress)
+    _finish(stats, quiet)

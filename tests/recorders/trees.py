@@ -62,3 +62,54 @@ def build_kitti_tree(root: Path, frames: tuple[int, ...] = KITTI06_FRAMES) -> di
     (seq / "calib.txt").write_text(kitti06_calib_text())
     np.savetxt(root / "poses" / "06.txt", poses, fmt="%.9e")
     return {"times_s": times, "poses": poses, "left": lefts, "right": rights, "sequence": seq}
+
+
+# EuRoC: 4 real stereo pairs (2 loop-closure pairs) from Kimera-VIO's test data.
+EUROC_FIRST_STAMP_NS = 1_403_636_579_763_555_584  # MH_01_easy's first cam0 stamp
+EUROC_PERIOD_NS = 50_000_000  # 20 Hz
+
+
+def build_euroc_tree(root: Path, *, ground_truth: bool = True) -> dict:
+    """``root/mav0/{cam0,cam1}/{data.csv,data/,sensor.yaml}`` + ``state_groundtruth_estimate0``.
+
+    The 4 pairs ``left_img_N``/``right_img_N`` become frames 0..3, stamped 50 ms apart from a real
+    EuRoC stamp (the pairs come from different moments of a sequence; their real stamps are not
+    published with them). The ground truth has one row per frame at the frame's stamp, from
+    ``gt_poses_from_testLoopClosureDetector.txt`` (``world_T_body``, quaternion w x y z), plus
+    zeros for velocity and biases as in the 17-column ASL file.
+
+    Returns ``stamps_ns`` ``(4,)``, ``T_world_body`` ``(4, 4, 4)``, ``left``/``right`` source paths.
+    """
+    src = shared_path("euroc_loop_pairs")
+    mav0 = root / "mav0"
+    stamps = [EUROC_FIRST_STAMP_NS + k * EUROC_PERIOD_NS for k in range(4)]
+    for cam, prefix, yaml in (("cam0", "left", "sensorLeft.yaml"), ("cam1", "right", "sensorRight.yaml")):
+        (mav0 / cam / "data").mkdir(parents=True)
+        shutil.copyfile(src / yaml, mav0 / cam / "sensor.yaml")
+        lines = ["#timestamp [ns],filename"]
+        for k, stamp in enumerate(stamps):
+            shutil.copyfile(src / f"{prefix}_img_{k}.png", mav0 / cam / "data" / f"{stamp}.png")
+            lines.append(f"{stamp},{stamp}.png")
+        (mav0 / cam / "data.csv").write_text("\n".join(lines) + "\n")
+    T_world_body = []
+    rows = ["#timestamp, p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [], q_RS_y [], q_RS_z [], "
+            "v_RS_R_x [m s^-1], v_RS_R_y [m s^-1], v_RS_R_z [m s^-1], b_w_RS_S_x [rad s^-1], b_w_RS_S_y [rad s^-1], "
+            "b_w_RS_S_z [rad s^-1], b_a_RS_S_x [m s^-2], b_a_RS_S_y [m s^-2], b_a_RS_S_z [m s^-2]"]
+    gt_lines = [ln.split() for ln in (src / "gt_poses_from_testLoopClosureDetector.txt").read_text().splitlines()
+                if ln.strip() and not ln.startswith("#")]
+    for stamp, fields in zip(stamps, gt_lines):
+        qw, qx, qy, qz, x, y, z = (float(v) for v in fields[2:9])
+        rows.append(",".join([str(stamp)] + [repr(v) for v in (x, y, z, qw, qx, qy, qz)] + ["0"] * 9))
+        from recorders.common import transforms_from_quaternions
+
+        T_world_body.append(transforms_from_quaternions([x, y, z], [qx, qy, qz, qw])[0])
+    if ground_truth:
+        (mav0 / "state_groundtruth_estimate0").mkdir()
+        (mav0 / "state_groundtruth_estimate0" / "data.csv").write_text("\n".join(rows) + "\n")
+    return {
+        "stamps_ns": np.array(stamps, dtype=np.int64),
+        "T_world_body": np.array(T_world_body),
+        "left": [src / f"left_img_{k}.png" for k in range(4)],
+        "right": [src / f"right_img_{k}.png" for k in range(4)],
+        "root": root,
+    }
