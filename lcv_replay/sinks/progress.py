@@ -1,0 +1,74 @@
+"""The progress sink: a rich progress bar with frames/s, × real time, constraints and top score."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from lcv_replay.sinks.base import BaseSink, FrameUpdate, RunStart, RunSummary, StepUpdate
+
+REFRESH_PER_SECOND = 4
+
+
+class ProgressSink(BaseSink):
+    """Draws one progress bar on ``console`` (a ``rich.console.Console``, stderr by default).
+
+    The figures come from the replay's records (its injectable clock), not from a clock of its own.
+    """
+
+    def __init__(self, console: Any | None = None):
+        from rich.console import Console
+
+        self.console = console if console is not None else Console(stderr=True)
+        self._progress = None
+        self._task = None
+        self._top_score: int | None = None
+
+    def on_start(self, start: RunStart) -> None:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self._progress = Progress(
+            TextColumn("[bold]{task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("{task.fields[fps]} fr/s"),
+            TextColumn("{task.fields[realtime]}× real time"),
+            TextColumn("{task.fields[constraints]} constraints"),
+            TextColumn("top score {task.fields[top]}"),
+            TimeElapsedColumn(),
+            console=self.console,
+            refresh_per_second=REFRESH_PER_SECOND,
+            transient=False,
+            redirect_stderr=False,
+            redirect_stdout=False,
+        )
+        self._task = self._progress.add_task(
+            f"{start.log_path.name} · {start.method}", total=start.frames or None,
+            fps="—", realtime="—", constraints=0, top="—",
+        )
+        self._progress.start()
+
+    def on_frame(self, update: FrameUpdate) -> None:
+        if self._progress is None:
+            return
+        wall = update.wall_elapsed_s
+        frames_done = update.frame.index + 1
+        self._progress.update(
+            self._task,
+            completed=frames_done,
+            fps=f"{frames_done / wall:.1f}" if wall > 0 else "—",
+            realtime=f"{update.log_elapsed_s / wall:.2f}" if wall > 0 else "—",
+            constraints=update.constraints_total,
+            top="—" if update.top_score is None else update.top_score,
+        )
+
+    def on_step(self, update: StepUpdate) -> None:
+        if self._progress is not None and update.step.ranking:
+            self._progress.update(self._task, top=update.step.ranking[0].score)
+
+    def on_finish(self, summary: RunSummary) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._progress is not None:
+            self._progress.stop()
+            self._progress = None

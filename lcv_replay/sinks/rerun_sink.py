@@ -1,0 +1,543 @@
+"""The Rerun sink: every intermediate result of a replay on the ``frame`` and ``log_time`` timelines.
+
+Outputs combine (tee): ``--save OUT.rrd`` (written to a temp file and renamed when the replay ends,
+Ctrl-C included), ``--spawn`` (a local viewer), ``--connect URL`` (a running viewer) and ``--serve``
+(a gRPC server plus the web viewer, both bound to 127.0.0.1). What is logged, and where, is listed in
+:mod:`lcv_replay.sinks.blueprint`; the pure array work is in :mod:`lcv_replay.sinks.layout`.
+
+Logging discipline: few entities with many instances; per-frame scalar series are buffered and sent
+with ``rr.send_columns``; the growing trajectories are re-logged every ``TRAJECTORY_EVERY`` frames and
+at each verifier step, not every frame.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import uuid
+from collections import defaultdict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+from urllib.parse import quote
+
+import numpy as np
+import rerun as rr
+
+from lcv_replay.config import RerunConfig
+from lcv_replay.errors import OutputError
+from lcv_replay.fileio import check_output_path
+from lcv_replay.sinks import blueprint as bp
+from lcv_replay.sinks.base import BaseSink, FrameUpdate, RetrievalUpdate, RunStart, RunSummary, StepUpdate
+from lcv_replay.sinks.layout import (
+    STATE_STYLE,
+    ConstraintState,
+    MapEstimate,
+    anchor_to_first,
+    consistency_rows,
+    constraint_states,
+    flatten,
+    hypotheses_markdown,
+    key_value_markdown,
+    retrieval_markdown,
+    segments,
+)
+from lcv_replay.verification.base import Constraint
+
+logger = logging.getLogger(__name__)
+
+APPLICATION_ID = "lcv-replay"
+TRAJECTORY_EVERY = 25  # frames between re-logs of the growing trajectories
+COLUMN_FLUSH_FRAMES = 20  # per-frame series are sent with send_columns every this many frames
+PENDING_FULL_LIMIT = 500  # re-log all pending constraints at each arrival while there are this few
+PENDING_EVERY = 10  # ... else every this many frames
+CONSISTENCY_MAX_CELLS = 1_000_000  # rows of the consistency tensor are cut to fit (best first)
+TREE_MAX_NODES = 5_000  # the generation tree keeps the newest nodes beyond this
+JPEG_QUALITY = 85
+
+_LINE = rr.Radius.ui_points(1.0)
+_THICK = rr.Radius.ui_points(2.5)
+_RANK1_COLOR = (255, 200, 0)
+
+
+@dataclass(frozen=True)
+class RerunOutputs:
+    """Where the recording goes; several can be combined.
+
+    Attributes:
+        save: the .rrd to write (``None``: no file).
+        spawn: start a local viewer and stream to it.
+        connect: URL of a running viewer (``rerun+http://127.0.0.1:9876/proxy``).
+        serve: host a gRPC server and the web viewer on 127.0.0.1.
+        grpc_port, web_port: ports for ``--spawn`` (gRPC) and ``--serve``.
+        memory_limit: viewer / server memory limit (``"25%"``, ``"4GB"``); ``None``: the config's.
+    """
+
+    save: Path | None = None
+    spawn: bool = False
+    connect: str | None = None
+    serve: bool = False
+    grpc_port: int = 9876
+    web_port: int = 9090
+    memory_limit: str | None = None
+
+    @property
+    def any(self) -> bool:
+        return self.save is not None or self.spawn or self.connect is not None or self.serve
+
+
+class _Columns:
+    """Per-frame series buffered for ``rr.send_columns`` (one entity per series)."""
+
+    def __init__(self) -> None:
+        self._rows: dict[str, list[tuple[int, int, float]]] = defaultdict(list)
+        self._points: dict[str, list[tuple[int, int, float, float]]] = defaultdict(list)
+
+    def scalar(self, path: str, frame: int, stamp_ns: int, value: float | None) -> None:
+        if value is not None and np.isfinite(value):
+            self._rows[path].append((frame, stamp_ns, float(value)))
+
+    def point(self, path: str, frame: int, stamp_ns: int, xy: np.ndarray) -> None:
+        self._points[path].append((frame, stamp_ns, float(xy[0]), float(xy[1])))
+
+    def flush(self, rec: rr.RecordingStream) -> None:
+        for path, rows in self._rows.items():
+            if rows:
+                data = np.asarray(rows, dtype=np.float64)
+                rec.send_columns(path, indexes=_indexes(rows), columns=rr.Scalars.columns(scalars=data[:, 2]))
+        for path, rows in self._points.items():
+            if rows:
+                data = np.asarray(rows, dtype=np.float64)
+                rec.send_columns(path, indexes=_indexes(rows), columns=rr.Points2D.columns(positions=data[:, 2:4]))
+        self._rows.clear()
+        self._points.clear()
+
+
+def _indexes(rows: Sequence[tuple]) -> list:
+    frames = np.fromiter((r[0] for r in rows), dtype=np.int64, count=len(rows))
+    stamps = np.fromiter((r[1] for r in rows), dtype=np.int64, count=len(rows)).astype("datetime64[ns]")
+    return [
+        rr.TimeColumn(bp.FRAME_TIMELINE, sequence=frames),
+        rr.TimeColumn(bp.LOG_TIME_TIMELINE, timestamp=stamps),
+    ]
+
+
+def web_viewer_url(web_port: int, grpc_uri: str) -> str:
+    """The URL that opens the served web viewer connected to the gRPC server."""
+    return f"http://127.0.0.1:{web_port}/?url={quote(grpc_uri, safe='')}"
+
+
+class RerunSink(BaseSink):
+    """Logs a replay to Rerun (see the module docstring and :mod:`lcv_replay.sinks.blueprint`)."""
+
+    def __init__(self, config: RerunConfig, outputs: RerunOutputs, *, recording_id: str | None = None):
+        if not outputs.any:
+            raise OutputError("the Rerun sink has no output", fix="pass --save, --spawn, --connect or --serve")
+        if outputs.save is not None:
+            check_output_path(outputs.save, force=True)
+        self.config = config
+        self.outputs = outputs
+        self.served_url: str | None = None
+        self._recording_id = recording_id or uuid.uuid4().hex
+        self._rec: rr.RecordingStream | None = None
+        self._tmp_path: Path | None = None
+        self._finished = False
+        self._columns = _Columns()
+        self._map = MapEstimate()
+        self._start: RunStart | None = None
+        self._constraints: list[Constraint] = []
+        self._truth: list[bool | None] = []
+        self._judged = 0
+        self._last_pending_frame = -(10**9)
+        self._accepted: set[int] = set()
+        self._top: tuple[int, int] | None = None  # (hypothesis id, score) of rank 1
+        self._tree: dict[int, tuple[int | None, int | None, int]] = {}  # id -> (parent, constraint, window)
+        self._gt_display: np.ndarray | None = None
+        self._frame = 0
+        self._stamp_ns = 0
+        self._stamps: list[int] = []  # log_time of each frame, by index
+
+    # ------------------------------------------------------------------ set-up
+    def on_start(self, start: RunStart) -> None:
+        self._start = start
+        rec = rr.RecordingStream(APPLICATION_ID, recording_id=self._recording_id, send_properties=True)
+        rec.set_log_time_enabled(False)  # our log_time is the MCAP's, not the wall clock
+        rec.set_log_tick_enabled(False)
+        sinks: list[Any] = []
+        memory_limit = self.outputs.memory_limit or self.config.memory_limit
+        if self.outputs.save is not None:
+            save = Path(self.outputs.save)
+            self._tmp_path = save.with_name(f".{save.name}.{os.getpid()}.tmp")
+            sinks.append(rr.FileSink(str(self._tmp_path)))
+        if self.outputs.spawn:
+            rr.spawn(port=self.outputs.grpc_port, connect=False, memory_limit=memory_limit, hide_welcome_screen=True)
+            sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{self.outputs.grpc_port}/proxy"))
+        if self.outputs.connect is not None:
+            sinks.append(rr.GrpcSink(self.outputs.connect))
+        if self.outputs.serve:
+            server = rr.GrpcServerSink(bind_ip="127.0.0.1", port=self.outputs.grpc_port, server_memory_limit=memory_limit)
+            sinks.append(server)
+        blueprint = bp.default_blueprint(has_images=start.has_images, has_retrieval=start.code_bits is not None)
+        rec.set_sinks(*sinks, default_blueprint=blueprint)
+        if self.outputs.serve:
+            rr.serve_web_viewer(web_port=self.outputs.web_port, open_browser=False, connect_to=server.uri)
+            self.served_url = web_viewer_url(self.outputs.web_port, server.uri)
+        self._rec = rec
+        rec.send_recording_name(f"{start.log_path.name} · {start.method}")
+        rec.send_recording_start_time_nanos(int(start.start_ns))
+        self._log_static(start)
+
+    def _log_static(self, start: RunStart) -> None:
+        rec = self._rec
+        for root in bp.MAP_ROOTS:  # the map is y-up (x forward, y left), like the log's odom frame
+            rec.log(root, rr.Transform3D(scale=[1.0, -1.0, 1.0]), static=True)
+        rec.log(
+            "/constraints",
+            rr.AnnotationContext(
+                [rr.ClassDescription(info=rr.AnnotationInfo(id=int(state), label=label, color=color))
+                 for state, (label, color) in STATE_STYLE.items()]
+            ),
+            static=True,
+        )
+        rec.log(bp.REPORT, rr.TextDocument(self._report_markdown(None), media_type=rr.MediaType.MARKDOWN), static=True)
+        for name, color in (("precision", (40, 200, 80)), ("recall", (60, 140, 250)), ("ate_rmse_m", (240, 90, 40))):
+            rec.log(bp.metric_path(name), rr.SeriesLines(colors=[color], names=[name]), static=True)
+        if start.ground_truth is not None and len(start.ground_truth):
+            self._gt_display = np.asarray(start.ground_truth, dtype=np.float64)
+
+    # ------------------------------------------------------------------ per frame
+    def _set_time(self, frame: int, stamp_ns: int) -> None:
+        self._frame, self._stamp_ns = frame, stamp_ns
+        self._rec.set_time(bp.FRAME_TIMELINE, sequence=frame)
+        self._rec.set_time(bp.LOG_TIME_TIMELINE, timestamp=np.datetime64(int(stamp_ns), "ns"))
+
+    def on_frame(self, update: FrameUpdate) -> None:
+        rec = self._rec
+        frame = update.frame
+        self._set_time(frame.index, frame.stamp_ns)
+        self._stamps.append(int(frame.stamp_ns))
+        odom = frame.odom
+        self._map.add_odometry((odom.x_m, odom.y_m, odom.yaw_rad) if odom is not None else self._last_odom())
+        if self._gt_display is not None and self._map.frames == 1:
+            self._gt_display = anchor_to_first(self._gt_display, self._map.odometry[0])
+        self._constraints.extend(update.new_constraints)
+        self._truth.extend(update.new_constraint_truth)
+
+        every = self.config.image_every
+        if every > 0 and frame.index % every == 0:
+            if frame.left is not None:
+                self._log_image(bp.CAMERA_LEFT, frame.left.decode())
+            if self.config.log_right_image and frame.right is not None:
+                self._log_image(bp.CAMERA_RIGHT, frame.right.decode())
+
+        current = self._map.positions_of(np.array([frame.index]))[0]
+        self._columns.point(bp.TRAJ_CURRENT, frame.index, frame.stamp_ns, current)
+        self._columns.scalar(bp.metric_path("constraints"), frame.index, frame.stamp_ns, update.constraints_total)
+        self._columns.scalar(bp.metric_path("frame_time_s"), frame.index, frame.stamp_ns, update.frame_time_s)
+        if update.new_constraints:
+            pending = len(self._constraints) - self._judged
+            if pending <= PENDING_FULL_LIMIT or frame.index - self._last_pending_frame >= PENDING_EVERY:
+                self._log_pending()
+        if frame.index % TRAJECTORY_EVERY == 0:
+            self._log_trajectories()
+        if frame.index % COLUMN_FLUSH_FRAMES == COLUMN_FLUSH_FRAMES - 1:
+            self._columns.flush(rec)
+
+    def _last_odom(self) -> tuple[float, float, float]:
+        odom = self._map.odometry
+        return tuple(odom[-1]) if len(odom) else (0.0, 0.0, 0.0)
+
+    def _log_image(self, path: str, image: np.ndarray) -> None:
+        import cv2
+
+        array = np.asarray(image)
+        if array.ndim == 3 and array.shape[2] == 3:
+            array = cv2.cvtColor(array, cv2.COLOR_RGB2BGR)
+        ok, encoded = cv2.imencode(".jpg", array, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        if not ok:  # pragma: no cover - cv2 encodes any uint8 image
+            self._rec.log(path, rr.Image(image))
+            return
+        self._rec.log(path, rr.EncodedImage(contents=encoded.tobytes(), media_type="image/jpeg"))
+
+    def _log_pending(self) -> None:
+        pending = self._constraints[self._judged :]
+        self._last_pending_frame = self._frame
+        if not pending:
+            self._rec.log(bp.CONSTRAINTS_PENDING, rr.Clear(recursive=False))
+            return
+        pairs = np.array([(c.query_frame, c.match_frame) for c in pending], dtype=np.int64)
+        ends = self._map.positions_of(pairs.reshape(-1)).reshape(-1, 2, 2)
+        self._rec.log(
+            bp.CONSTRAINTS_PENDING,
+            rr.LineStrips2D(ends, radii=_LINE, class_ids=np.full(len(pending), int(ConstraintState.PENDING)), show_labels=False),
+            rr.AnyValues(
+                constraint_id=np.array([c.id for c in pending], dtype=np.int64),
+                query_frame=pairs[:, 0],
+                match_frame=pairs[:, 1],
+            ),
+        )
+
+    def _log_trajectories(self) -> None:
+        rec = self._rec
+        n = self._map.frames
+        rec.log(bp.TRAJ_ODOMETRY, rr.LineStrips2D([self._map.odometry[:, :2]], radii=_LINE, colors=[(150, 150, 150)], labels=["odometry"], show_labels=False))
+        rec.log(bp.TRAJ_BEST, rr.LineStrips2D([self._map.poses()[:, :2]], radii=_THICK, colors=[_RANK1_COLOR], labels=["best estimate"], show_labels=False))
+        if self._gt_display is not None:
+            rec.log(bp.TRAJ_GROUND_TRUTH, rr.LineStrips2D([self._gt_display[:n, :2]], radii=_LINE, colors=[(90, 200, 255)], labels=["ground truth"], show_labels=False))
+
+    # ------------------------------------------------------------------ retrieval
+    def on_retrieval(self, update: RetrievalUpdate) -> None:
+        rec = self._rec
+        frame = update.frame
+        self._set_time(frame.index, frame.stamp_ns)
+        if update.code is not None:
+            bits = np.asarray(update.code, dtype=bool).reshape(1, -1)
+            rec.log(bp.RETRIEVAL_CODE, rr.Image((bits * 255).astype(np.uint8)))
+        self._columns.scalar(bp.metric_path("prefilter_size"), frame.index, frame.stamp_ns, update.prefilter_size)
+        top = np.asarray(update.top_frames, dtype=np.int64).reshape(-1)
+        if len(top) == 0:
+            rec.log(bp.RETRIEVAL_LINES, rr.Clear(recursive=False))
+            rec.log(bp.RETRIEVAL_DISTANCES, rr.Clear(recursive=False))
+            rec.log(bp.RETRIEVAL_MATCHES, rr.TextDocument(f"**query frame {frame.index}**: nothing retrieved", media_type=rr.MediaType.MARKDOWN))
+            return
+        l2 = np.asarray(update.l2_distances, dtype=np.float64).reshape(-1)
+        admitted = {int(c.match_frame) for c in update.candidates}
+        rec.log(bp.RETRIEVAL_DISTANCES, rr.BarChart(l2, color=(60, 140, 250)))
+        rec.log(
+            bp.RETRIEVAL_MATCHES,
+            rr.TextDocument(retrieval_markdown(frame.index, top, l2, update.hamming, admitted), media_type=rr.MediaType.MARKDOWN),
+        )
+        ends = self._map.positions_of(np.column_stack([np.full(len(top), frame.index), top]).reshape(-1)).reshape(-1, 2, 2)
+        rec.log(
+            bp.RETRIEVAL_LINES,
+            rr.LineStrips2D(ends, radii=_LINE, colors=[(60, 140, 250)], labels=[f"rank {r}: {int(m)}" for r, m in enumerate(top, 1)], show_labels=False),
+            rr.AnyValues(match_frame=top, l2_distance=l2),
+        )
+
+    # ------------------------------------------------------------------ verifier steps
+    def on_step(self, update: StepUpdate) -> None:
+        rec = self._rec
+        step = update.step
+        self._set_time(step.frame_index, self._stamps[min(step.frame_index, len(self._stamps) - 1)])
+        rec.set_time(bp.WINDOW_TIMELINE, sequence=step.window_index)
+        try:
+            self._log_step(update)
+        finally:
+            rec.disable_timeline(bp.WINDOW_TIMELINE)
+
+    def _log_step(self, update: StepUpdate) -> None:
+        rec = self._rec
+        step = update.step
+        constraints = list(update.constraints)
+        self._constraints = constraints
+        self._truth = list(update.constraint_truth)
+        ranking = step.ranking
+        top_k = self.config.top_hypotheses
+
+        # Map of the rank-1 hypothesis.
+        top_traj = _top_trajectory(step)
+        if top_traj is not None:
+            self._map.set_best(top_traj)
+
+        # Constraints, coloured by state on that map.
+        self._judged = len(constraints)
+        states = constraint_states(len(constraints), step.accepted_constraint_ids, self._truth)
+        if constraints:
+            pairs = np.array([(c.query_frame, c.match_frame) for c in constraints], dtype=np.int64)
+            positions = self._map.poses()[:, :2]
+            # Negative radii are UI points (rr.Radius.ui_points); wrong accepted loops drawn thicker.
+            radii = -np.where(states == ConstraintState.ACCEPTED_FALSE, 2.5, 1.0).astype(np.float32)
+            rec.log(
+                bp.CONSTRAINTS_SEGMENTS,
+                rr.LineStrips2D(segments(positions, pairs), radii=radii, class_ids=states.astype(np.uint16), show_labels=False),
+                rr.AnyValues(
+                    constraint_id=np.array([c.id for c in constraints], dtype=np.int64),
+                    query_frame=pairs[:, 0],
+                    match_frame=pairs[:, 1],
+                    similarity=np.array([c.candidate.similarity for c in constraints], dtype=np.float64),
+                    state=[STATE_STYLE[ConstraintState(int(s))][0] for s in states],
+                ),
+            )
+        rec.log(bp.CONSTRAINTS_PENDING, rr.Clear(recursive=False))
+
+        # Hypotheses: ranks, top-k trajectories, consistency, tree, sequences.
+        if ranking:
+            values = _rank_values(ranking)
+            rec.log(bp.HYPOTHESES_RANKS, rr.BarChart(values, color=_RANK1_COLOR),
+                    rr.AnyValues(hypothesis_id=np.array([h.id for h in ranking], dtype=np.int64),
+                                 score=np.array([h.score for h in ranking], dtype=np.int64)))
+            strips, labels, colors = [], [], []
+            for h in ranking[:top_k]:
+                traj = step.trajectories.get(h.id)
+                if traj is None or len(traj) == 0:
+                    continue
+                strips.append(np.asarray(traj)[:, :2])
+                labels.append(f"#{h.rank} H{h.id} ({h.score})")
+                colors.append(_RANK1_COLOR if h.rank == 1 else _rank_color(h.rank, top_k))
+            if strips:
+                rec.log(bp.HYPOTHESES_TRAJECTORIES, rr.LineStrips2D(strips, labels=labels, colors=colors, radii=_LINE))
+        consistency = np.asarray(step.consistency)
+        if consistency.ndim == 2 and consistency.size:
+            rows = consistency_rows(consistency.shape, min_rows=top_k, max_cells=CONSISTENCY_MAX_CELLS)
+            rec.log(bp.HYPOTHESES_CONSISTENCY, rr.Tensor(consistency[:rows].astype(np.uint8), dim_names=("hypothesis_rank", "constraint_id")))
+        self._log_tree(update)
+        rec.log(bp.HYPOTHESES_SEQUENCES, rr.TextDocument(hypotheses_markdown(ranking, constraints, top=top_k), media_type=rr.MediaType.MARKDOWN))
+
+        self._log_events(update, states)
+        self._log_metrics(update)
+        self._log_trajectories()
+        self._columns.flush(rec)
+
+    def _log_tree(self, update: StepUpdate) -> None:
+        step = update.step
+        for h in step.new_hypotheses:
+            self._tree.setdefault(h.id, (h.parent_id, None, h.window))
+        for parent, child, cid in step.generation_edges:
+            _, _, window = self._tree.get(child, (parent, cid, step.window_index))
+            self._tree[child] = (parent, cid, window)
+        if not self._tree and not step.ranking:
+            return
+        for h in step.ranking:
+            self._tree.setdefault(h.id, (h.parent_id, None, h.window))
+        if len(self._tree) > TREE_MAX_NODES:
+            for old in sorted(self._tree)[: len(self._tree) - TREE_MAX_NODES]:
+                del self._tree[old]
+        kept = {h.id: h for h in step.ranking}
+        top_id = step.ranking[0].id if step.ranking else None
+        ids = sorted(self._tree)
+        labels, colors = [], []
+        for hid in ids:
+            parent, cid, _ = self._tree[hid]
+            label = f"H{hid}" + (f" +c{cid}" if cid is not None else "")
+            if hid in kept:
+                label += f" ({kept[hid].score})"
+            labels.append(label)
+            colors.append(_RANK1_COLOR if hid == top_id else ((90, 160, 250) if hid in kept else (110, 110, 110)))
+        self._rec.log(bp.HYPOTHESES_TREE, rr.GraphNodes([f"H{i}" for i in ids], labels=labels, colors=colors))
+        edges = [(f"H{p}", f"H{c}") for c, (p, _, _) in ((i, self._tree[i]) for i in ids) if p is not None and p in self._tree]
+        if edges:
+            self._rec.log(bp.HYPOTHESES_TREE, rr.GraphEdges(edges, graph_type="directed"))
+
+    def _log_events(self, update: StepUpdate, states: np.ndarray) -> None:
+        rec = self._rec
+        step = update.step
+        constraints = update.constraints
+        accepted = set(int(i) for i in step.accepted_constraint_ids)
+        frame = step.frame_index
+        for cid in sorted(accepted - self._accepted):
+            c = constraints[cid]
+            state = ConstraintState(int(states[cid]))
+            truly = " — TRULY FALSE" if state is ConstraintState.ACCEPTED_FALSE else ""
+            rec.log(bp.EVENTS, rr.TextLog(
+                f"constraint {cid} ({c.query_frame}↔{c.match_frame}) accepted at frame {frame}{truly}",
+                level=rr.TextLogLevel.WARN if truly else rr.TextLogLevel.INFO))
+        for cid in sorted(self._accepted - accepted):
+            c = constraints[cid]
+            rec.log(bp.EVENTS, rr.TextLog(
+                f"constraint {cid} ({c.query_frame}↔{c.match_frame}) no longer accepted at frame {frame}",
+                level=rr.TextLogLevel.INFO))
+        self._accepted = accepted
+        if step.ranking:
+            top = (step.ranking[0].id, step.ranking[0].score)
+            if self._top is None or top[0] != self._top[0]:
+                before = "none" if self._top is None else f"#{self._top[0]} (score {self._top[1]})"
+                rec.log(bp.EVENTS, rr.TextLog(
+                    f"rank-1 hypothesis changed from {before} to #{top[0]} (score {top[1]}) at frame {frame}",
+                    level=rr.TextLogLevel.INFO))
+            self._top = top
+        if step.dropped:
+            rec.log(bp.EVENTS, rr.TextLog(f"{len(step.dropped)} hypotheses dropped at frame {frame}: "
+                                          + ", ".join(f"#{h} ({why})" for h, why in step.dropped[:10])
+                                          + (" …" if len(step.dropped) > 10 else ""),
+                                          level=rr.TextLogLevel.DEBUG))
+
+    def _log_metrics(self, update: StepUpdate) -> None:
+        rec = self._rec
+        m = update.metrics
+        det = m.detection
+        for name, value in (
+            ("precision", det.precision),
+            ("recall", det.recall),
+            ("ate_rmse_m", m.ate_rmse_m),
+            ("accepted", det.accepted),
+            ("hypotheses", m.hypotheses),
+        ):
+            if value is not None and np.isfinite(value):
+                rec.log(bp.metric_path(name), rr.Scalars(float(value)))
+        for stage, seconds in sorted(update.step.timings_s.items()):
+            rec.log(bp.metric_path(f"stage_time_s/{stage}"), rr.Scalars(float(seconds)))
+
+    # ------------------------------------------------------------------ end
+    def on_finish(self, summary: RunSummary) -> None:
+        if self._rec is None:
+            return
+        self._columns.flush(self._rec)
+        self._log_trajectories_if_any()
+        self._rec.log(bp.REPORT, rr.TextDocument(self._report_markdown(summary), media_type=rr.MediaType.MARKDOWN), static=True)
+        self._finished = True
+
+    def _log_trajectories_if_any(self) -> None:
+        if self._map.frames:
+            self._set_time(self._frame, self._stamp_ns)
+            self._log_trajectories()
+
+    def _report_markdown(self, summary: RunSummary | None) -> str:
+        start = self._start
+        parts = [f"# lcv-replay: {start.log_path.name}", ""]
+        if summary is None:
+            parts.append("*replay running…*")
+        else:
+            items = summary.to_json_dict()
+            items.pop("config", None)
+            ids = items.pop("accepted_constraint_ids", [])
+            parts.append(key_value_markdown("Summary", items))
+            parts.append("")
+            parts.append(f"accepted constraint ids: {', '.join(map(str, ids)) or '(none)'}")
+        parts += ["", key_value_markdown("Log", {
+            "path": str(start.log_path), "frames": start.frames, "first log frame": start.first_log_frame,
+            "duration_s": start.log_duration_s, "images": start.has_images, "ground truth": start.has_ground_truth,
+            "truth of constraints": start.truth_source, **flatten(dict(start.log_metadata), "metadata."),
+        })]
+        parts += ["", key_value_markdown("Run", {
+            "method": start.method, "constraints from": start.constraint_source,
+            "rate": "max" if start.rate is None else start.rate, "seed": start.seed,
+        })]
+        parts += ["", key_value_markdown("Config", flatten(dict(start.config)))]
+        return "\n".join(parts)
+
+    def close(self) -> None:
+        rec, self._rec = self._rec, None
+        if rec is None:
+            return
+        try:
+            rec.flush()
+        finally:
+            rec.disconnect()
+            del rec
+        if self._tmp_path is None:
+            return
+        if self._finished:
+            os.replace(self._tmp_path, self.outputs.save)
+        else:  # an error: do not leave a half-written recording behind
+            with contextlib.suppress(FileNotFoundError):
+                self._tmp_path.unlink()
+
+
+def _top_trajectory(step) -> np.ndarray | None:
+    from lcv_replay.evaluation.metrics import top_trajectory
+
+    return top_trajectory(step)
+
+
+def _rank_values(ranking) -> np.ndarray:
+    """Bar heights in rank order: the ranking key (``float(score)`` for ``ilv``)."""
+    keys = np.array([h.rank_key for h in ranking], dtype=np.float64)
+    if np.any(keys != 0.0):
+        return keys
+    return np.array([h.score for h in ranking], dtype=np.float64)
+
+
+def _rank_color(rank: int, top_k: int) -> tuple[int, int, int]:
+    t = (rank - 1) / max(top_k - 1, 1)
+    return (int(90 + 60 * t), int(160 - 60 * t), int(250 - 100 * t))

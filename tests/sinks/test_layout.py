@@ -1,0 +1,131 @@
+"""Pure sink helpers: constraint states, the best-map estimate, anchoring, markdown, tensor rows."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from lcv_replay.records import LoopCandidate
+from lcv_replay.sinks.layout import (
+    ConstraintState,
+    MapEstimate,
+    anchor_to_first,
+    consistency_rows,
+    constraint_states,
+    flatten,
+    hypotheses_markdown,
+    retrieval_markdown,
+    segments,
+)
+from lcv_replay.verification.base import Constraint, HypothesisSummary
+from lcv_replay.verification.pose_graph import se2_compose
+
+
+def test_constraint_states_cover_every_combination():
+    truth = [True, False, None, True, False, None, True]
+    states = constraint_states(7, accepted_ids=[0, 1, 2], truth=truth)
+    assert states.tolist() == [
+        ConstraintState.ACCEPTED,
+        ConstraintState.ACCEPTED_FALSE,
+        ConstraintState.ACCEPTED,
+        ConstraintState.REJECTED_TRUE,
+        ConstraintState.REJECTED_FALSE,
+        ConstraintState.REJECTED,
+        ConstraintState.REJECTED_TRUE,
+    ]
+    assert [ConstraintState(s).accepted for s in states] == [True, True, True, False, False, False, False]
+
+
+def test_constraint_states_pending_and_short_truth():
+    states = constraint_states(4, accepted_ids=[0, 3], truth=[False], judged=2)
+    assert states.tolist() == [ConstraintState.ACCEPTED_FALSE, ConstraintState.REJECTED, ConstraintState.PENDING, ConstraintState.PENDING]
+    assert constraint_states(0, [], []).shape == (0,)
+
+
+def _odometry(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    poses = [np.zeros(3)]
+    for _ in range(n - 1):
+        poses.append(se2_compose(poses[-1], np.array([1.0, rng.normal(0, 0.1), rng.normal(0, 0.1)])))
+    return np.array(poses)
+
+
+def test_map_estimate_before_and_after_a_step():
+    odom = _odometry(30)
+    est = MapEstimate()
+    for pose in odom[:20]:
+        est.add_odometry(pose)
+    assert est.frames == 20 and est.optimised_frames == 0
+    np.testing.assert_allclose(est.poses(), odom[:20])
+    np.testing.assert_allclose(est.positions_of(np.array([3, 19])), odom[[3, 19], :2])
+
+    # A step moves the first 20 frames rigidly by 5 m in x: later frames follow by odometry.
+    best = odom[:20].copy()
+    best[:, 0] += 5.0
+    est.set_best(best)
+    for pose in odom[20:]:
+        est.add_odometry(pose)
+    poses = est.poses()
+    np.testing.assert_allclose(poses[:20], best)
+    np.testing.assert_allclose(poses[20:, :2], odom[20:, :2] + [5.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(est.positions_of(np.array([25, 2])), poses[[25, 2], :2])
+
+
+def test_map_estimate_grows_past_its_initial_capacity():
+    est = MapEstimate()
+    for k in range(3000):
+        est.add_odometry((float(k), 0.0, 0.0))
+    assert est.frames == 3000
+    assert est.odometry[-1, 0] == 2999.0
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.floats(-50, 50), st.floats(-50, 50), st.floats(-math.pi, math.pi))
+def test_anchor_to_first_moves_the_first_pose_and_keeps_shape(x, y, yaw):
+    reference = _odometry(15, seed=3)
+    reference = se2_compose(np.array([10.0, -4.0, 0.7]), reference)
+    anchored = anchor_to_first(reference, np.array([x, y, yaw]))
+    np.testing.assert_allclose(anchored[0, :2], [x, y], atol=1e-9)
+    assert math.isclose(math.remainder(anchored[0, 2] - yaw, 2 * math.pi), 0.0, abs_tol=1e-9)
+    # Rigid: pairwise distances unchanged.
+    d_ref = np.linalg.norm(np.diff(reference[:, :2], axis=0), axis=1)
+    d_new = np.linalg.norm(np.diff(anchored[:, :2], axis=0), axis=1)
+    np.testing.assert_allclose(d_new, d_ref, atol=1e-9)
+
+
+def test_segments_and_consistency_rows():
+    positions = np.arange(20, dtype=float).reshape(10, 2)
+    seg = segments(positions, np.array([[5, 1], [9, 0]]))
+    assert seg.shape == (2, 2, 2)
+    np.testing.assert_array_equal(seg[0], [positions[5], positions[1]])
+    assert consistency_rows((200, 100), min_rows=10, max_cells=1_000_000) == 200
+    assert consistency_rows((200, 50_000), min_rows=10, max_cells=1_000_000) == 20
+    assert consistency_rows((200, 500_000), min_rows=10, max_cells=1_000_000) == 10
+    assert consistency_rows((5, 500_000), min_rows=10, max_cells=1_000_000) == 5
+
+
+def test_markdown_tables_name_ranks_and_constraints():
+    constraints = [Constraint(i, LoopCandidate(100 + i, i), 100 + i) for i in range(3)]
+    ranking = (
+        HypothesisSummary(id=7, parent_id=2, constraint_ids=(0, 2), score=5, rank=1, window=1, chi2=12.5),
+        HypothesisSummary(id=0, parent_id=None, constraint_ids=(), score=1, rank=2, window=0),
+    )
+    text = hypotheses_markdown(ranking, constraints, top=10)
+    assert "| 1 | #7 | #2 | 5 | 12.5 | 1 | 0: 100↔0, 2: 102↔2 |" in text
+    assert "(odometry only)" in text
+    table = retrieval_markdown(50, [3, 9], [0.1, 0.25], [1, 2], admitted={9})
+    assert "| 2 | 9 | 0.2500 | 2 | yes |" in table and "| 1 | 3 | 0.1000 | 1 | no |" in table
+    assert flatten({"a": {"b": 1, "c": {"d": 2}}, "e": 3}) == {"a.b": 1, "a.c.d": 2, "e": 3}
+
+
+@pytest.mark.parametrize("bits", [1, 20, 64])
+def test_code_bits_msb_first(bits):
+    from lcv_replay.replay import code_bits_msb_first
+
+    code = (1 << (bits - 1)) | 1
+    out = code_bits_msb_first(code, bits)
+    assert out.shape == (bits,) and out[0] and out[-1] and out.sum() == (1 if bits == 1 else 2)
