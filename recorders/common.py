@@ -342,8 +342,9 @@ def interpolate_planar(stamps_ns: np.ndarray, poses: np.ndarray, query_ns: np.nd
         stamps_ns: ``(M,)`` increasing stamps of ``poses``.
         poses: ``(M, 3)`` planar poses.
         query_ns: ``(N,)`` stamps to interpolate at.
-        max_gap_ns: a query more than this far from the nearest pose, or between two poses more
-            than this far apart, gets a NaN row.
+        max_gap_ns: a query between two poses more than this far apart, or before the first /
+            after the last pose by more than this, gets a NaN row (a query outside the poses but
+            within ``max_gap_ns`` takes the nearest pose).
 
     Returns:
         ``(N, 3)`` poses, NaN where no pose is close enough.
@@ -373,7 +374,9 @@ def interpolate_planar(stamps_ns: np.ndarray, poses: np.ndarray, query_ns: np.nd
     )
     inside = (query >= t0) & (query <= t1) & (t1 - t0 <= max_gap_ns)
     nearest = np.where(np.abs(query - t0) <= np.abs(t1 - query), lo, hi)
-    close = np.abs(stamps[nearest] - query) <= max_gap_ns
+    distance = np.abs(stamps[nearest] - query)
+    outside = (query < stamps[0]) | (query > stamps[-1])
+    close = (distance == 0) | (outside & (distance <= max_gap_ns))
     out[close] = poses[nearest[close]]
     out[inside] = interp[inside]
     return out

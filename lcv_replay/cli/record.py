@@ -199,3 +199,49 @@ def record_euroc_command(
     with recording_progress("euroc", quiet=quiet) as progress:
         stats = record_euroc(source, out, options, force=force, progress=progress)
     _finish(stats, quiet)
+
+
+class StampSourceChoice(str, enum.Enum):
+    auto = "auto"
+    names = "names"
+    odometry = "odometry"
+    rate = "rate"
+
+
+@record_app.command("folder")
+def record_folder_command(
+    source: Optional[Path] = typer.Argument(None, help="Folder holding left/, right/, odometry.csv, ground_truth.csv, calibration.yaml (each overridable)."),
+    out: Path = OUT_OPTION,
+    left: Optional[Path] = typer.Option(None, "--left", help="Left image folder (default SOURCE/left)."),
+    right: Optional[Path] = typer.Option(None, "--right", help="Right image folder with the same file names (default SOURCE/right)."),
+    odometry: Optional[Path] = typer.Option(None, "--odometry", help="Planar odometry CSV: timestamp_ns,x_m,y_m,yaw_rad (default SOURCE/odometry.csv)."),
+    ground_truth: Optional[Path] = typer.Option(None, "--ground-truth", help="Planar ground-truth CSV, same format (default SOURCE/ground_truth.csv)."),
+    calibration: Optional[Path] = typer.Option(None, "--calibration", help="Rectified stereo calibration, YAML or JSON: fx, fy, cx, cy, baseline_m [, width, height, distortion]."),
+    stamps: StampSourceChoice = typer.Option(StampSourceChoice.auto, "--stamps", help="Frame stamps from ns file names, odometry rows, or --rate-hz."),
+    rate_hz: Optional[float] = typer.Option(None, "--rate-hz", help="Frame rate for --stamps rate."),
+    max_gap_ns: Optional[int] = typer.Option(None, "--max-gap-ns", min=1, help="Largest pose gap bridged by interpolation (default: 3 frame periods)."),
+    dataset: Optional[str] = typer.Option(None, "--dataset", help="Dataset name for the log metadata."),
+    image_format: ImageFormatChoice = IMAGE_FORMAT_OPTION,
+    jpeg_quality: int = JPEG_QUALITY_OPTION,
+    force: bool = FORCE_OPTION,
+    quiet: bool = QUIET_OPTION,
+) -> None:
+    """Record left/right image folders plus a timestamped planar odometry CSV."""
+    from recorders.folder import FolderOptions, record_folder
+
+    options = FolderOptions(
+        left=left,
+        right=right,
+        odometry=odometry,
+        ground_truth=ground_truth,
+        calibration=calibration,
+        stamps=stamps.value,  # type: ignore[arg-type]
+        rate_hz=rate_hz,
+        max_gap_ns=max_gap_ns,
+        dataset=dataset,
+        image_format=image_format.value,  # type: ignore[arg-type]
+        jpeg_quality=jpeg_quality,
+    )
+    with recording_progress("folder", quiet=quiet) as progress:
+        stats = record_folder(source, out, options, force=force, progress=progress)
+    _finish(stats, quiet)
