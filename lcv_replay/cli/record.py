@@ -245,3 +245,54 @@ def record_folder_command(
     with recording_progress("folder", quiet=quiet) as progress:
         stats = record_folder(source, out, options, force=force, progress=progress)
     _finish(stats, quiet)
+
+
+class TimeSourceChoice(str, enum.Enum):
+    auto = "auto"
+    header = "header"
+    log = "log"
+
+
+@record_app.command("ros2")
+def record_ros2_command(
+    bag: Path = typer.Argument(..., help="ROS 2 bag in MCAP storage (.mcap, CDR encoding)."),
+    out: Path = OUT_OPTION,
+    left_topic: Optional[str] = typer.Option(None, "--left-topic", help="Left camera: sensor_msgs/msg/Image or CompressedImage."),
+    right_topic: Optional[str] = typer.Option(None, "--right-topic", help="Right camera: sensor_msgs/msg/Image or CompressedImage."),
+    odom_topic: str = typer.Option("/odom", "--odom-topic", help="nav_msgs/msg/Odometry topic, projected to planar ('' for none)."),
+    ground_truth_topic: Optional[str] = typer.Option(None, "--ground-truth-topic", help="Ground truth: Odometry, PoseStamped or PoseWithCovarianceStamped."),
+    left_info_topic: Optional[str] = typer.Option(None, "--left-info-topic", help="sensor_msgs/msg/CameraInfo of the left camera (default: the sibling camera_info)."),
+    right_info_topic: Optional[str] = typer.Option(None, "--right-info-topic", help="sensor_msgs/msg/CameraInfo of the right camera (default: the sibling camera_info)."),
+    time_source: TimeSourceChoice = typer.Option(TimeSourceChoice.auto, "--time-source", help="Frame stamps from header.stamp, MCAP log_time, or header unless zero (auto)."),
+    max_rate_hz: Optional[float] = typer.Option(None, "--max-rate-hz", help="Without images: keep at most this many odometry frames per second."),
+    stereo_tolerance_ns: int = typer.Option(1_000_000, "--stereo-tolerance-ns", min=0, help="Left/right stamps closer than this form a pair."),
+    max_gap_ns: int = typer.Option(500_000_000, "--max-gap-ns", min=1, help="Largest odometry gap bridged by interpolation to image stamps."),
+    max_frames: Optional[int] = MAX_FRAMES_OPTION,
+    dataset: Optional[str] = typer.Option(None, "--dataset", help="Dataset name for the log metadata."),
+    image_format: ImageFormatChoice = IMAGE_FORMAT_OPTION,
+    jpeg_quality: int = JPEG_QUALITY_OPTION,
+    force: bool = FORCE_OPTION,
+    quiet: bool = QUIET_OPTION,
+) -> None:
+    """Import a ROS 2 MCAP: stereo images, nav_msgs/Odometry (planar), optional ground truth."""
+    from recorders.ros2 import Ros2Options, record_ros2
+
+    options = Ros2Options(
+        left_topic=left_topic,
+        right_topic=right_topic,
+        odom_topic=odom_topic or None,
+        ground_truth_topic=ground_truth_topic,
+        left_info_topic=left_info_topic,
+        right_info_topic=right_info_topic,
+        time_source=time_source.value,  # type: ignore[arg-type]
+        max_rate_hz=max_rate_hz,
+        stereo_tolerance_ns=stereo_tolerance_ns,
+        max_gap_ns=max_gap_ns,
+        max_frames=max_frames,
+        dataset=dataset,
+        image_format=image_format.value,  # type: ignore[arg-type]
+        jpeg_quality=jpeg_quality,
+    )
+    with recording_progress("ros2", quiet=quiet) as progress:
+        stats = record_ros2(bag, out, options, force=force, progress=progress)
+    _finish(stats, quiet)
