@@ -23,9 +23,11 @@ Entity paths are named after what they hold, so that a user (or a test) finds th
 ``/trajectories/best``          the current best estimate (rank-1, extended by odometry)
 ``/trajectories/current``       the current pose on the best estimate
 ``/metrics/...``                time series: precision, recall, ate_rmse_m, accepted, constraints,
-                                hypotheses, frame_time_s, prefilter_size, stage_time_s/<stage>
+                                hypotheses, prefilter_size; wall clock: frame_time_s and
+                                stage_time_s (one instance per verifier stage)
 ``/events``                     loop-closure events (text log)
 ``/report``                     config, log metadata and final summary (markdown, static)
+``/report/timing``              wall time, × real time, set-up time (markdown, static)
 ==============================  =====================================================================
 
 Timelines: ``frame`` (sequence, replay-local index) and ``log_time`` (the MCAP timestamp, ns) on
@@ -54,6 +56,13 @@ TRAJ_CURRENT = "/trajectories/current"
 METRICS = "/metrics"
 EVENTS = "/events"
 REPORT = "/report"
+REPORT_TIMING = "/report/timing"
+STAGE_TIMES = "/metrics/stage_time_s"
+FRAME_TIME = "/metrics/frame_time_s"
+
+#: The only entities that hold wall-clock measurements; everything else in a recording is a
+#: deterministic function of the log, the config and the seed.
+WALL_CLOCK_ENTITIES = (FRAME_TIME, STAGE_TIMES, REPORT_TIMING)
 
 #: Roots of the entities drawn on the map; each gets a static y-flip so the 2-D map is y-up.
 MAP_ROOTS = ("/trajectories", "/constraints", "/hypotheses", "/retrieval")
@@ -105,7 +114,8 @@ def default_blueprint(*, has_images: bool, has_retrieval: bool):
         rrb.Tabs(
             rrb.TextDocumentView(name="Top hypotheses", origin=HYPOTHESES_SEQUENCES),
             rrb.GraphView(name="Generation tree", origin=HYPOTHESES_TREE),
-            rrb.TextDocumentView(name="Run report", origin="/report"),
+            rrb.TextDocumentView(name="Run report", origin=REPORT, contents=[f"+ {REPORT}"]),
+            rrb.TextDocumentView(name="Timing", origin=REPORT_TIMING),
         )
     )
     right = rrb.Vertical(
@@ -130,7 +140,7 @@ def default_blueprint(*, has_images: bool, has_retrieval: bool):
             rrb.TimeSeriesView(
                 name="Stage times [s]",
                 origin=METRICS,
-                contents=[f"+ {metric_path('stage_time_s')}/**", f"+ {metric_path('frame_time_s')}"],
+                contents=[f"+ {STAGE_TIMES}", f"+ {FRAME_TIME}"],
             ),
         ),
         rrb.TextLogView(name="Events", origin=EVENTS),

@@ -48,6 +48,8 @@ from lcv_replay.verification.base import Constraint
 logger = logging.getLogger(__name__)
 
 APPLICATION_ID = "lcv-replay"
+#: Summary keys measured on the wall clock (they differ between identical runs).
+WALL_CLOCK_KEYS = ("wall_time_s", "x_real_time", "setup_time_s")
 TRAJECTORY_EVERY = 25  # frames between re-logs of the growing trajectories
 COLUMN_FLUSH_FRAMES = 20  # per-frame series are sent with send_columns every this many frames
 PENDING_FULL_LIMIT = 500  # re-log all pending constraints at each arrival while there are this few
@@ -55,6 +57,7 @@ PENDING_EVERY = 10  # ... else every this many frames
 CONSISTENCY_MAX_CELLS = 1_000_000  # rows of the consistency tensor are cut to fit (best first)
 TREE_MAX_NODES = 5_000  # the generation tree keeps the newest nodes beyond this
 JPEG_QUALITY = 85
+DETERMINISTIC_FLUSH_TICK_S = 1e6  # "never": file-only recordings flush on size and at explicit points
 
 _LINE = rr.Radius.ui_points(1.0)
 _THICK = rr.Radius.ui_points(2.5)
@@ -157,11 +160,17 @@ class RerunSink(BaseSink):
         self._frame = 0
         self._stamp_ns = 0
         self._stamps: list[int] = []  # log_time of each frame, by index
+        self._stages: list[str] | None = None  # verifier stage names of /metrics/stage_time_s
 
     # ------------------------------------------------------------------ set-up
     def on_start(self, start: RunStart) -> None:
         self._start = start
-        rec = rr.RecordingStream(APPLICATION_ID, recording_id=self._recording_id, send_properties=True)
+        # No automatic properties: their start time is the wall clock; ours is the log's (below).
+        # A file-only recording is batched by size alone (no wall-clock flush tick), so that the same
+        # log, config and seed give the same chunks; live viewers keep Rerun's default tick.
+        live = self.outputs.spawn or self.outputs.connect is not None or self.outputs.serve
+        batcher = None if live else rr.ChunkBatcherConfig(flush_tick=DETERMINISTIC_FLUSH_TICK_S)
+        rec = rr.RecordingStream(APPLICATION_ID, recording_id=self._recording_id, send_properties=False, batcher_config=batcher)
         rec.set_log_time_enabled(False)  # our log_time is the MCAP's, not the wall clock
         rec.set_log_tick_enabled(False)
         sinks: list[Any] = []
@@ -234,7 +243,7 @@ class RerunSink(BaseSink):
         current = self._map.positions_of(np.array([frame.index]))[0]
         self._columns.point(bp.TRAJ_CURRENT, frame.index, frame.stamp_ns, current)
         self._columns.scalar(bp.metric_path("constraints"), frame.index, frame.stamp_ns, update.constraints_total)
-        self._columns.scalar(bp.metric_path("frame_time_s"), frame.index, frame.stamp_ns, update.frame_time_s)
+        self._columns.scalar(bp.FRAME_TIME, frame.index, frame.stamp_ns, update.frame_time_s)
         if update.new_constraints:
             pending = len(self._constraints) - self._judged
             if pending <= PENDING_FULL_LIMIT or frame.index - self._last_pending_frame >= PENDING_EVERY:
@@ -465,8 +474,12 @@ class RerunSink(BaseSink):
         ):
             if value is not None and np.isfinite(value):
                 rec.log(bp.metric_path(name), rr.Scalars(float(value)))
-        for stage, seconds in sorted(update.step.timings_s.items()):
-            rec.log(bp.metric_path(f"stage_time_s/{stage}"), rr.Scalars(float(seconds)))
+        timings = update.step.timings_s
+        if timings:
+            if self._stages is None:  # one entity, one instance per stage (fixed at the first step)
+                self._stages = sorted(timings)
+                rec.log(bp.STAGE_TIMES, rr.SeriesLines(names=self._stages), static=True)
+            rec.log(bp.STAGE_TIMES, rr.Scalars([float(timings.get(s, float("nan"))) for s in self._stages]))
 
     # ------------------------------------------------------------------ end
     def on_finish(self, summary: RunSummary) -> None:
@@ -475,6 +488,7 @@ class RerunSink(BaseSink):
         self._columns.flush(self._rec)
         self._log_trajectories_if_any()
         self._rec.log(bp.REPORT, rr.TextDocument(self._report_markdown(summary), media_type=rr.MediaType.MARKDOWN), static=True)
+        self._rec.log(bp.REPORT_TIMING, rr.TextDocument(_timing_markdown(summary), media_type=rr.MediaType.MARKDOWN), static=True)
         self._finished = True
 
     def _log_trajectories_if_any(self) -> None:
@@ -489,7 +503,10 @@ class RerunSink(BaseSink):
             parts.append("*replay running…*")
         else:
             items = summary.to_json_dict()
-            items.pop("config", None)
+            # Wall-clock figures go to /report/timing; the config has its own table; the .rrd's own path
+            # is where the reader already is.
+            for volatile in ("config", "rrd", *WALL_CLOCK_KEYS):
+                items.pop(volatile, None)
             ids = items.pop("accepted_constraint_ids", [])
             parts.append(key_value_markdown("Summary", items))
             parts.append("")
@@ -522,6 +539,12 @@ class RerunSink(BaseSink):
         else:  # an error: do not leave a half-written recording behind
             with contextlib.suppress(FileNotFoundError):
                 self._tmp_path.unlink()
+
+
+def _timing_markdown(summary: RunSummary) -> str:
+    """The wall-clock figures of the run (kept apart from /report, which is deterministic)."""
+    items = summary.to_json_dict()
+    return key_value_markdown("Timing (wall clock)", {key: items[key] for key in WALL_CLOCK_KEYS})
 
 
 def _top_trajectory(step) -> np.ndarray | None:

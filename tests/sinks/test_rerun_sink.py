@@ -118,7 +118,7 @@ def test_every_listed_entity_is_written(scripted):
                  bp.HYPOTHESES_CONSISTENCY, bp.HYPOTHESES_TREE, bp.HYPOTHESES_SEQUENCES, bp.TRAJ_ODOMETRY,
                  bp.TRAJ_GROUND_TRUTH, bp.TRAJ_BEST, bp.TRAJ_CURRENT, bp.EVENTS, bp.REPORT,
                  bp.metric_path("precision"), bp.metric_path("recall"), bp.metric_path("ate_rmse_m"),
-                 bp.metric_path("constraints"), bp.metric_path("hypotheses"), bp.metric_path("stage_time_s/optimise")):
+                 bp.metric_path("constraints"), bp.metric_path("hypotheses"), bp.STAGE_TIMES, bp.FRAME_TIME, bp.REPORT_TIMING):
         assert path in tables, f"{path} missing; have {sorted(tables)}"
 
 

@@ -1,0 +1,147 @@
+"""`lcv-replay LOG.mcap`: bad input gets one ``error:`` line and exit code 2; Ctrl-C stops cleanly."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from lcv_replay.cli import app
+from lcv_replay.records import Pose2D
+from tests.replay.helpers import FAST_CONFIG_TOML, record_square_route, write_config
+
+
+@pytest.fixture(scope="module")
+def square(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("cli")
+    log, route = record_square_route(folder, laps=2, side_poses=25)
+    return folder, log, write_config(folder / "fast.toml", FAST_CONFIG_TOML)
+
+
+def _write_log(path: Path, *, odom: bool, images: bool) -> Path:
+    from recorders.common import LogHeader, SourceFrame, write_log
+
+    image = np.zeros((16, 24), dtype=np.uint8)
+    frames = [
+        SourceFrame(
+            stamp_ns=k * 100_000_000,
+            left=(lambda: image) if images else None,
+            odom=Pose2D(float(k), 0.0, 0.0) if odom else None,
+        )
+        for k in range(5)
+    ]
+    write_log(path, LogHeader(dataset="bad", recorder="test", nominal_rate_hz=10.0, config={}), frames, force=True)
+    return path
+
+
+def _cli(args: list[str]):
+    result = CliRunner().invoke(app, args)
+    return result.exit_code, result.output
+
+
+def _assert_one_line_error(code: int, output: str, *needles: str) -> None:
+    lines = [line for line in output.splitlines() if line.startswith("error:")]
+    assert code == 2, output
+    assert len(lines) == 1, output
+    assert "Traceback" not in output
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
+def test_missing_file(tmp_path):
+    code, out = _cli([str(tmp_path / "nope.mcap"), "--quiet"])
+    _assert_one_line_error(code, out, "nope.mcap", "file not found")
+    assert not (tmp_path / "nope.rrd").exists()
+
+
+def test_log_without_odometry(tmp_path):
+    log = _write_log(tmp_path / "noodom.mcap", odom=False, images=True)
+    code, out = _cli([str(log), "--quiet"])
+    _assert_one_line_error(code, out, "noodom.mcap", "no odometry", "lcv-replay vo")
+    assert not (tmp_path / "noodom.rrd").exists()
+
+
+def test_log_with_neither_images_nor_candidates(tmp_path):
+    log = _write_log(tmp_path / "bare.mcap", odom=True, images=False)
+    code, out = _cli([str(log), "--quiet"])
+    _assert_one_line_error(code, out, "bare.mcap", "neither images nor /loop_candidates")
+
+
+def test_constraints_that_the_log_cannot_serve(square):
+    _, log, config = square
+    code, out = _cli([str(log), "--quiet", "--constraints", "images", "--config", str(config)])
+    _assert_one_line_error(code, out, "--constraints images needs images", "use --constraints log")
+
+
+@pytest.mark.parametrize("where", ["missing-folder", "is-a-folder"])
+def test_unwritable_outputs(square, tmp_path, where):
+    _, log, config = square
+    target = tmp_path / "missing" / "out.rrd" if where == "missing-folder" else tmp_path
+    code, out = _cli([str(log), "--quiet", "--config", str(config), "--save", str(target)])
+    _assert_one_line_error(code, out, str(target))
+    code, out = _cli([str(log), "--quiet", "--config", str(config), "--no-rerun", "--summary-json", str(target)])
+    _assert_one_line_error(code, out, str(target))
+
+
+@pytest.mark.parametrize(
+    "toml, needles",
+    [
+        ("[verification]\nwindw_frames = 10\n", ("unknown config key 'verification.windw_frames'", "window_frames")),
+        ("[verification]\nwindow_frames = 0\n", ("verification.window_frames", "out of range")),
+        ("[rerun]\nimage_every = -1\n", ("rerun.image_every",)),
+        ("[verification\n", ("not valid TOML",)),
+    ],
+)
+def test_bad_config_names_the_key(square, tmp_path, toml, needles):
+    _, log, _ = square
+    config = write_config(tmp_path / "bad.toml", toml)
+    code, out = _cli([str(log), "--quiet", "--config", str(config)])
+    _assert_one_line_error(code, out, "bad.toml", *needles)
+
+
+def test_unknown_method_and_bad_rate(square):
+    _, log, config = square
+    code, out = _cli([str(log), "--quiet", "--config", str(config), "--method", "magic"])
+    _assert_one_line_error(code, out, "unknown verification method 'magic'", "ilv")
+    code, out = _cli([str(log), "--quiet", "--rate", "0"])
+    _assert_one_line_error(code, out, "--rate")
+
+
+def test_replay_writes_the_default_rrd_next_to_the_log_and_prints_the_summary(square):
+    folder, log, config = square
+    code, out = _cli([str(log), "--quiet", "--config", str(config), "--summary-json", str(folder / "cli.json")])
+    assert code == 0, out
+    assert (folder / "square.rrd").is_file()
+    assert "lcv-replay summary" in out and f"rerun {folder / 'square.rrd'}" in out
+    assert json.loads((folder / "cli.json").read_text())["frames"] == 200
+
+
+def test_sigint_mid_replay_finalises_the_recording_and_the_summary(square, tmp_path):
+    _, log, config = square
+    rrd, js = tmp_path / "int.rrd", tmp_path / "int.json"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "from lcv_replay.cli import main; main()", str(log), "--rate", "2", "--quiet", "--config", str(config),
+         "--save", str(rrd), "--summary-json", str(js)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[2],
+    )
+    deadline = time.monotonic() + 60
+    while not list(tmp_path.glob(".int.rrd.*.tmp")) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.1)
+    time.sleep(2.0)  # 200 frames at 2x real time take 10 s: stop after ~2 s
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    summary = json.loads(js.read_text())
+    assert summary["interrupted"] is True and 0 < summary["frames"] < 200
+    assert "INTERRUPTED" in out and "Traceback" not in err
+    verify = subprocess.run(["rerun", "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=120)
+    assert verify.returncode == 0, verify.stdout + verify.stderr
+    assert not list(tmp_path.glob(".int.rrd.*"))
