@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from lcv_replay.cli.app import app
+from lcv_replay.cli.app import app, bench_app
 
 
 @app.command("info", help="Show a log's topics, counts, rates, frames and contents (like 'ros2 bag info').")
@@ -37,3 +37,39 @@ def info_command(
         typer.echo(json.dumps(info_to_json(info), indent=2))
     else:
         typer.echo(format_info(info))
+
+
+@bench_app.command("log", help="Log I/O benchmark: write/read throughput and size of 640x480 RGB stereo logs.")
+def bench_log_command(
+    frames: int = typer.Option(300, help="Frames per run."),
+    resolution: str = typer.Option("640x480", help="WxH of each image."),
+    source: list[str] = typer.Option(["corridor", "synthetic"], help="corridor (real RTAB-Map images) and/or synthetic."),
+    image_format: str = typer.Option("png", "--image-format", help="png, jpeg or raw."),
+    compression: str = typer.Option("zstd", help="zstd, lz4 or none."),
+    repeats: int = typer.Option(3, help="Runs per source; medians are reported."),
+    corridor: Path = typer.Option(None, help="Folder of the corridor JPEGs (default ../shared/data/rtabmap_corridor)."),
+    output: Path = typer.Option(Path("bench-out/log_bench.json"), "-o", "--output", help="JSON results."),
+) -> None:
+    import json
+
+    from lcv_replay.errors import ConfigError
+    from lcv_replay.fileio import write_text_atomic
+    from lcv_replay.log.bench import format_results, results_to_json, run_log_benchmark
+
+    try:
+        width, height = (int(v) for v in resolution.lower().split("x"))
+    except ValueError:
+        raise ConfigError(f"resolution {resolution!r} is not WxH", fix="e.g. --resolution 640x480") from None
+    if corridor is None:
+        corridor = Path(__file__).resolve().parents[3] / "shared" / "data" / "rtabmap_corridor"
+    results = [
+        run_log_benchmark(
+            frames=frames, width_px=width, height_px=height, source=s, corridor=corridor,
+            image_format=image_format, compression=compression, repeats=repeats,
+        )
+        for s in source
+    ]
+    typer.echo(format_results(results))
+    output.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(output, json.dumps(results_to_json(results), indent=2) + "\n")
+    typer.echo(f"wrote {output}")

@@ -14,9 +14,11 @@ from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
 IMAGE_FORMATS = ("png", "jpeg", "raw")
 
-# PNG compression level 1 (zlib): ~3x faster than the default 3 for ~5 % larger files on camera
-# images; the MCAP chunk compression cannot shrink PNG data further anyway.
+# PNG: zlib level 1 with the Z_RLE strategy. On 640x480 camera images (RTAB-Map corridor) this is
+# ~2x faster than OpenCV's default (level 1, default strategy) and 18 % smaller; on noisy
+# textures it is ~2x faster at the same size. The MCAP chunk compression cannot shrink PNG data.
 PNG_COMPRESSION_LEVEL = 1
+PNG_STRATEGY_RLE = 3  # cv2.IMWRITE_PNG_STRATEGY_RLE
 
 
 def check_image(image: np.ndarray, what: str) -> np.ndarray:
@@ -37,7 +39,9 @@ def encode_compressed(image: np.ndarray, image_format: str, *, jpeg_quality: int
 
     bgr = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
     if image_format == "png":
-        ok, buffer = cv2.imencode(".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION_LEVEL])
+        ok, buffer = cv2.imencode(
+            ".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION_LEVEL, cv2.IMWRITE_PNG_STRATEGY, PNG_STRATEGY_RLE]
+        )
     elif image_format == "jpeg":
         ok, buffer = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
     else:

@@ -13,6 +13,9 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO, Literal
 
@@ -63,6 +66,9 @@ class LogWriter:
         odometry_information: ``(3, 3)`` information matrix of one odometry step (x, y, yaw), if known.
         extra_metadata: more string entries for the ``lcv`` record (not the reserved keys).
         chunk_size_bytes: target MCAP chunk size; smaller chunks make time-window reads finer.
+        encode_threads: image-encoding worker threads; up to ``4 * encode_threads`` frames may be
+            queued (encoding) before :meth:`write_frame` blocks. An encoding failure is raised by a
+            later call (``write_*`` or :meth:`close`).
 
     Raises:
         OutputError: ``path`` exists (without ``force``) or its folder is missing/unwritable.
@@ -84,6 +90,7 @@ class LogWriter:
         odometry_information: np.ndarray | None = None,
         extra_metadata: dict[str, str] | None = None,
         chunk_size_bytes: int = 1 << 20,
+        encode_threads: int = 2,
     ):
         self.path = Path(path)
         if image_format not in images.IMAGE_FORMATS:
@@ -120,6 +127,11 @@ class LogWriter:
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._closed = False
+        # Image encoding runs on worker threads (OpenCV releases the GIL): write_frame returns once
+        # the frame is queued, and frames are written to the MCAP in order as their images finish.
+        self._encode_threads = max(1, int(encode_threads))
+        self._pool: ThreadPoolExecutor | None = None
+        self._pending: deque[_PendingFrame] = deque()
 
         self._atomic = atomic_output(self.path, force=force)
         tmp = self._atomic.__enter__()
@@ -186,12 +198,14 @@ class LogWriter:
             self._abort(type(error), error, None)
             raise error
         try:
+            self._drain()
             self._mcap.finish()
             self._stream.close()
         except BaseException:
             self._abort(*_exc_info())
             raise
         self._closed = True
+        self._shutdown_pool()
         self._atomic.__exit__(None, None, None)
 
     def abort(self) -> None:
@@ -202,6 +216,8 @@ class LogWriter:
         if self._closed:
             return
         self._closed = True
+        self._pending.clear()
+        self._shutdown_pool()
         with contextlib.suppress(Exception):
             self._stream.close()
         with contextlib.suppress(BaseException):
@@ -215,6 +231,7 @@ class LogWriter:
             raise RecorderError(f"invalid calibration {calib}", path=self.path)
         if not (math.isfinite(calib.baseline_m) and calib.baseline_m >= 0):
             raise RecorderError(f"calibration baseline_m {calib.baseline_m} must be >= 0", path=self.path)
+        self._drain()
         left, right = messages.calibration_messages(calib, int(stamp_ns))
         self._write_proto(fmt.LEFT_CALIBRATION_TOPIC, left, int(stamp_ns), 0)
         self._write_proto(fmt.RIGHT_CALIBRATION_TOPIC, right, int(stamp_ns), 0)
@@ -272,41 +289,38 @@ class LogWriter:
             if pose is not None and not all(math.isfinite(float(v)) for v in pose):
                 raise RecorderError(f"frame {index}: {name} {tuple(pose)} is not finite", path=self.path)
 
-        encoded = []
+        checked = {}
         try:
             for side, image in (("left", left), ("right", right)):
                 if image is not None:
-                    checked = images.check_image(image, f"frame {index} {side} image")
+                    array = images.check_image(image, f"frame {index} {side} image")
                     if self._image_shape is None:
-                        self._image_shape = checked.shape
-                    elif checked.shape != self._image_shape:
+                        self._image_shape = array.shape
+                    elif array.shape != self._image_shape:
                         raise ValueError(
-                            f"frame {index} {side} image has shape {checked.shape}, earlier images {self._image_shape}"
+                            f"frame {index} {side} image has shape {array.shape}, earlier images {self._image_shape}"
                         )
-                    encoded.append((side, self._image_message(checked, side, stamp_ns)))
+                    checked[side] = array
         except ValueError as exc:
             raise RecorderError(str(exc), path=self.path) from None
 
-        for side, message in encoded:
-            topic = fmt.LEFT_IMAGE_TOPIC if side == "left" else fmt.RIGHT_IMAGE_TOPIC
-            self._write_proto(topic, message, stamp_ns, index)
-        if odom is not None:
-            odom = Pose2D(float(odom[0]), float(odom[1]), float(odom[2]))
-            self._write_proto(fmt.ODOM_TOPIC, messages.pose_in_frame(odom, stamp_ns, fmt.ODOM_FRAME_ID), stamp_ns, index)
-            self._write_proto(
-                fmt.TF_TOPIC,
-                messages.frame_transform(odom, stamp_ns, fmt.ODOM_FRAME_ID, fmt.BASE_FRAME_ID),
-                stamp_ns,
-                index,
-            )
-        if ground_truth is not None:
-            gt = Pose2D(float(ground_truth[0]), float(ground_truth[1]), float(ground_truth[2]))
-            self._write_proto(
-                fmt.GROUND_TRUTH_TOPIC, messages.pose_in_frame(gt, stamp_ns, fmt.WORLD_FRAME_ID), stamp_ns, index
-            )
+        if checked and self._pool is None:
+            self._pool = ThreadPoolExecutor(self._encode_threads, thread_name_prefix="lcv-encode")
+        pending = _PendingFrame(
+            index=index,
+            stamp_ns=stamp_ns,
+            images={
+                side: self._pool.submit(self._image_message, array.copy(), side, stamp_ns)  # type: ignore[union-attr]
+                for side, array in checked.items()
+            },
+            odom=None if odom is None else Pose2D(float(odom[0]), float(odom[1]), float(odom[2])),
+            ground_truth=None if ground_truth is None else Pose2D(*(float(v) for v in ground_truth)),
+        )
+        self._pending.append(pending)
         self._frames_written += 1
         self._last_stamp_ns = stamp_ns
         self._frame_stamps_ns.append(stamp_ns)
+        self._flush_done(max_pending=4 * self._encode_threads)
 
     def write_loop_candidate(self, candidate: LoopCandidate, stamp_ns: int) -> None:
         """Write a candidate on ``/loop_candidates``; ``stamp_ns`` is the query frame's stamp.
@@ -315,6 +329,7 @@ class LogWriter:
         """
         self._check_open()
         self._check_pair(candidate.query_frame, candidate.match_frame, int(stamp_ns), "loop candidate")
+        self._drain()
         if not math.isfinite(float(candidate.similarity)):
             raise RecorderError(f"loop candidate {candidate.pair} has similarity {candidate.similarity}", path=self.path)
         if candidate.information is not None and (
@@ -336,6 +351,7 @@ class LogWriter:
         """Write a labelled true pair on ``/ground_truth/loops``; ``stamp_ns`` is the query frame's stamp."""
         self._check_open()
         self._check_pair(int(query_frame), int(match_frame), int(stamp_ns), "true loop")
+        self._drain()
         self._write_json(
             fmt.TRUE_LOOPS_TOPIC,
             messages.TRUE_LOOP_SCHEMA,
@@ -378,6 +394,44 @@ class LogWriter:
                 path=self.path,
                 fix="pass the query frame's stamp_ns",
             )
+
+    def _flush_done(self, max_pending: int) -> None:
+        """Write queued frames, in order, whose images are encoded; block while more than ``max_pending`` wait."""
+        while self._pending and (len(self._pending) > max_pending or all(f.done() for f in self._pending[0].images.values())):
+            frame = self._pending.popleft()
+            self._write_pending(frame)
+
+    def _drain(self) -> None:
+        self._flush_done(max_pending=0)
+
+    def _write_pending(self, frame: "_PendingFrame") -> None:
+        index, stamp_ns = frame.index, frame.stamp_ns
+        for side, topic in (("left", fmt.LEFT_IMAGE_TOPIC), ("right", fmt.RIGHT_IMAGE_TOPIC)):
+            future = frame.images.get(side)
+            if future is None:
+                continue
+            try:
+                message = future.result()
+            except ValueError as exc:
+                raise RecorderError(f"frame {index} {side} image: {exc}", path=self.path) from None
+            self._write_proto(topic, message, stamp_ns, index)
+        if frame.odom is not None:
+            self._write_proto(fmt.ODOM_TOPIC, messages.pose_in_frame(frame.odom, stamp_ns, fmt.ODOM_FRAME_ID), stamp_ns, index)
+            self._write_proto(
+                fmt.TF_TOPIC,
+                messages.frame_transform(frame.odom, stamp_ns, fmt.ODOM_FRAME_ID, fmt.BASE_FRAME_ID),
+                stamp_ns,
+                index,
+            )
+        if frame.ground_truth is not None:
+            self._write_proto(
+                fmt.GROUND_TRUTH_TOPIC, messages.pose_in_frame(frame.ground_truth, stamp_ns, fmt.WORLD_FRAME_ID), stamp_ns, index
+            )
+
+    def _shutdown_pool(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
 
     def _image_message(self, image: np.ndarray, side: str, stamp_ns: int) -> Any:
         frame_id = "camera_left" if side == "left" else "camera_right"
@@ -426,6 +480,17 @@ class LogWriter:
         self._mcap.add_message(
             channel_id=channel_id, log_time=stamp_ns, publish_time=stamp_ns, sequence=sequence, data=data
         )
+
+
+@dataclass
+class _PendingFrame:
+    """A frame queued while its images are being encoded."""
+
+    index: int
+    stamp_ns: int
+    images: dict[str, Future]
+    odom: Pose2D | None
+    ground_truth: Pose2D | None
 
 
 def _exc_info():

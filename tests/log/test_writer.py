@@ -114,3 +114,29 @@ def test_declared_labels_without_true_loops_read_as_labelled(tmp_path):
         writer.declare_labels()
     info = open_log(path).info
     assert info.has_labels and info.true_loop_count == 0 and info.metadata["sequence"] == "07"
+
+
+def test_interrupt_with_images_still_encoding_leaves_no_file_and_no_threads(tmp_path):
+    import threading
+
+    path = tmp_path / "out.mcap"
+    image = np.random.default_rng(0).integers(0, 255, (240, 320, 3), dtype=np.uint8)
+    with pytest.raises(KeyboardInterrupt):
+        with LogWriter(path, **KW) as writer:
+            for i in range(6):
+                writer.write_frame(i, 10 + i, left=image, right=image)
+            raise KeyboardInterrupt
+    assert _leftovers(tmp_path) == []
+    assert not any(t.name.startswith("lcv-encode") for t in threading.enumerate())
+
+
+def test_images_are_copied_when_queued(tmp_path):
+    """The caller may reuse its buffer right after write_frame returns (encoding is asynchronous)."""
+    path = tmp_path / "out.mcap"
+    buffer = np.zeros((8, 8), np.uint8)
+    with LogWriter(path, **KW) as writer:
+        for i in range(3):
+            buffer[:] = 10 * (i + 1)
+            writer.write_frame(i, 10 + i, left=buffer)
+    values = [int(f.left.decode()[0, 0]) for f in open_log(path).frames()]
+    assert values == [10, 20, 30]
