@@ -477,6 +477,49 @@ class LogHeader:
     jpeg_quality: int = 95
 
 
+def make_frames(
+    stamps_ns: np.ndarray,
+    *,
+    left: Sequence[Callable[[], np.ndarray]] | None = None,
+    right: Sequence[Callable[[], np.ndarray]] | None = None,
+    odometry: np.ndarray | None = None,
+    ground_truth: np.ndarray | None = None,
+) -> list[SourceFrame]:
+    """Zip per-frame arrays into :class:`SourceFrame` records.
+
+    Args:
+        stamps_ns: ``(N,)`` frame stamps.
+        left, right: ``N`` image loaders each, or ``None``.
+        odometry: ``(N, 3)`` planar odometry, or ``None``.
+        ground_truth: ``(N, 3)`` planar ground truth, NaN rows where a frame has none, or ``None``.
+    """
+    odom = poses_to_records(odometry) if odometry is not None else None
+    truth = poses_to_records(ground_truth) if ground_truth is not None else None
+    return [
+        SourceFrame(
+            int(stamp),
+            left=left[i] if left is not None else None,
+            right=right[i] if right is not None else None,
+            odom=odom[i] if odom is not None else None,
+            ground_truth=truth[i] if truth is not None and all(map(math.isfinite, truth[i])) else None,
+        )
+        for i, stamp in enumerate(np.asarray(stamps_ns, dtype=np.int64))
+    ]
+
+
+def options_config(options: Any, **extra: Any) -> dict:
+    """A recorder's options dataclass as JSON-ready values (paths as strings), plus ``extra``."""
+    from dataclasses import asdict
+
+    values = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(options).items()}
+    return {**values, **{k: (str(v) if isinstance(v, Path) else v) for k, v in extra.items()}}
+
+
+def image_loaders(paths: Sequence[Path]) -> list[Callable[[], np.ndarray]]:
+    """One :func:`read_image` loader per path."""
+    return [lambda p=p: read_image(p) for p in paths]
+
+
 def nominal_rate_hz(stamps_ns: np.ndarray, default: float = 10.0) -> float:
     """``1 / median frame period`` of ``(N,)`` stamps, or ``default`` with fewer than 2 frames."""
     stamps = np.asarray(stamps_ns, dtype=np.int64)

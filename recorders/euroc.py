@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -53,10 +53,10 @@ from recorders.common import (
     PoseFormat,
     ProgressCallback,
     RecordStats,
-    SourceFrame,
     associate_stamps,
     nominal_rate_hz,
-    poses_to_records,
+    make_frames,
+    options_config,
     project_to_planar,
     read_image,
     read_pose_file,
@@ -386,24 +386,19 @@ def record_euroc(
     out_path = check_output_path(out_path, force=force)
     seq = load_euroc_sequence(source, options)
     rect = seq.rectification
-    odom = poses_to_records(seq.odometry) if seq.odometry is not None else None
-    gt = seq.ground_truth
-    frames = [
-        SourceFrame(
-            int(seq.stamps_ns[i]),
-            left=_loader(seq.left_images[i], rect.left_maps if rect else None),
-            right=_loader(seq.right_images[i], rect.right_maps if rect else None),
-            odom=odom[i] if odom is not None else None,
-            ground_truth=poses_to_records(gt[i : i + 1])[0] if gt is not None and np.isfinite(gt[i]).all() else None,
-        )
-        for i in range(len(seq.stamps_ns))
-    ]
-    config = {
-        **{k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(options).items()},
-        "source": str(seq.mav0),
-        "dropped_unpaired_images": seq.dropped_unpaired,
-        "body": "rectified left camera projected on the ground plane (x = optical axis, yaw about world z)",
-    }
+    frames = make_frames(
+        seq.stamps_ns,
+        left=[_loader(p, rect.left_maps if rect else None) for p in seq.left_images],
+        right=[_loader(p, rect.right_maps if rect else None) for p in seq.right_images],
+        odometry=seq.odometry,
+        ground_truth=seq.ground_truth,
+    )
+    config = options_config(
+        options,
+        source=seq.mav0,
+        dropped_unpaired_images=seq.dropped_unpaired,
+        body="rectified left camera projected on the ground plane (x = optical axis, yaw about world z)",
+    )
     header = LogHeader(
         dataset=f"euroc/{seq.name}",
         recorder="euroc",

@@ -33,7 +33,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -46,11 +46,12 @@ from recorders.common import (
     LogHeader,
     ProgressCallback,
     RecordStats,
-    SourceFrame,
     interpolate_planar,
     list_images,
     nominal_rate_hz,
-    poses_to_records,
+    image_loaders,
+    make_frames,
+    options_config,
     read_image,
     require_path,
     write_log,
@@ -238,23 +239,16 @@ def record_folder(
     if calibration is None and right is not None:
         log.warning("no calibration file: stereo VO cannot run on this log (pass --calibration)")
 
-    odom_records = poses_to_records(odom_poses) if odom_poses is not None else None
-    frames = [
-        SourceFrame(
-            int(stamps[i]),
-            left=lambda p=left[i]: read_image(p),
-            right=(lambda p=right[i]: read_image(p)) if right is not None else None,
-            odom=odom_records[i] if odom_records is not None else None,
-            ground_truth=poses_to_records(gt_poses[i : i + 1])[0] if gt_poses is not None and np.isfinite(gt_poses[i]).all() else None,
-        )
-        for i in range(len(left))
-    ]
-    config = {
-        **{k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(options).items()},
-        "left": str(left_dir), "right": str(right_dir) if right_dir else None,
-        "odometry": str(odom_path) if odom_path else None, "ground_truth": str(gt_path) if gt_path else None,
-        "calibration": str(calib_path) if calib_path else None, "stamps_from": how,
-    }
+    frames = make_frames(
+        stamps,
+        left=image_loaders(left),
+        right=image_loaders(right) if right is not None else None,
+        odometry=odom_poses,
+        ground_truth=gt_poses,
+    )
+    config = options_config(
+        options, left=left_dir, right=right_dir, odometry=odom_path, ground_truth=gt_path, calibration=calib_path, stamps_from=how
+    )
     header = LogHeader(
         dataset=options.dataset or (src.name if src is not None else Path(left_dir).resolve().parent.name),
         recorder="folder",

@@ -32,7 +32,7 @@ import logging
 import math
 import re
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Literal
 
@@ -44,10 +44,10 @@ from recorders.common import (
     LogHeader,
     ProgressCallback,
     RecordStats,
-    SourceFrame,
     is_number,
     compose_chain,
-    poses_to_records,
+    make_frames,
+    options_config,
     read_numeric_rows,
     relative_steps,
     require_path,
@@ -599,13 +599,7 @@ def prepare_g2o(graph_path: str | Path, options: G2oOptions = G2oOptions()) -> G
             true_loops = frozenset(original_pairs)
 
     stamps_ns = options.start_stamp_ns + np.rint(np.arange(n) * (1e9 / options.rate_hz)).astype(np.int64)
-    config = {
-        "graph": str(graph_path),
-        "ground_truth": str(gt_path) if gt_path else None,
-        "true_loops": str(labels_path) if labels_path else None,
-        "graph_loops": len(graph.loops),
-        **{k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(options).items() if k not in ("ground_truth", "true_loops")},
-    }
+    config = options_config(options, graph=graph_path, ground_truth=gt_path, true_loops=labels_path, graph_loops=len(graph.loops))
     return G2oRecording(
         graph, options.dataset or hints.name, source, graph.odometry_poses(), ground_truth,
         tuple(candidates) + injected, true_loops, stamps_ns, config,
@@ -631,11 +625,7 @@ def record_g2o(
     started = time.perf_counter()
     out_path = check_output_path(out_path, force=force)
     rec = prepare_g2o(graph_path, options)
-    gt = poses_to_records(rec.ground_truth) if rec.ground_truth is not None else None
-    frames = [
-        SourceFrame(int(stamp), odom=odom, ground_truth=gt[i] if gt is not None else None)
-        for i, (stamp, odom) in enumerate(zip(rec.stamps_ns, poses_to_records(rec.odometry)))
-    ]
+    frames = make_frames(rec.stamps_ns, odometry=rec.odometry, ground_truth=rec.ground_truth)
     header = LogHeader(
         dataset=rec.dataset,
         recorder="g2o",

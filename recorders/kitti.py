@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -36,12 +36,13 @@ from recorders.common import (
     PoseFormat,
     ProgressCallback,
     RecordStats,
-    SourceFrame,
     associate_stamps,
     calibration_from_projections,
     list_images,
     nominal_rate_hz,
-    poses_to_records,
+    make_frames,
+    options_config,
+    image_loaders,
     project_to_planar,
     read_image,
     read_numeric_rows,
@@ -260,25 +261,20 @@ def record_kitti(
     started = time.perf_counter()
     out_path = check_output_path(out_path, force=force)
     seq = load_kitti_sequence(source, options)
-    odom = poses_to_records(seq.odometry) if seq.odometry is not None else None
-    gt = poses_to_records(seq.ground_truth) if seq.ground_truth is not None else None
-    frames = [
-        SourceFrame(
-            int(seq.stamps_ns[i]),
-            left=lambda p=seq.left_images[i]: read_image(p),
-            right=lambda p=seq.right_images[i]: read_image(p),
-            odom=odom[i] if odom is not None else None,
-            ground_truth=gt[i] if gt is not None else None,
-        )
-        for i in range(len(seq.left_images))
-    ]
-    config = {
-        **{k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(options).items()},
-        "source": str(seq.folder),
-        "ground_truth": str(seq.ground_truth_path) if seq.ground_truth_path else None,
-        "frame_offset": seq.frame_offset,
-        "planar_projection": "body x = camera z, body y = -camera x, yaw about camera -y; world = first camera frame",
-    }
+    frames = make_frames(
+        seq.stamps_ns,
+        left=image_loaders(seq.left_images),
+        right=image_loaders(seq.right_images),
+        odometry=seq.odometry,
+        ground_truth=seq.ground_truth,
+    )
+    config = options_config(
+        options,
+        source=seq.folder,
+        ground_truth=seq.ground_truth_path,
+        frame_offset=seq.frame_offset,
+        planar_projection="body x = camera z, body y = -camera x, yaw about camera -y; world = first camera frame",
+    )
     header = LogHeader(
         dataset=f"kitti/{seq.name}",
         recorder="kitti",

@@ -43,12 +43,12 @@ from recorders.common import (
     LogHeader,
     ProgressCallback,
     RecordStats,
-    SourceFrame,
     associate_stamps,
     calibration_from_projections,
     interpolate_planar,
     nominal_rate_hz,
-    poses_to_records,
+    make_frames,
+    options_config,
     project_to_planar,
     require_path,
     transforms_from_quaternions,
@@ -393,20 +393,13 @@ def record_ros2(
     if "left_info" in wanted and wanted["left_info"] in infos:
         calibration = _calibration(infos[wanted["left_info"]], infos.get(wanted.get("right_info", "")))
 
-    odom_records = poses_to_records(odom_poses) if odom_poses is not None else None
-    frames = []
-    for i, stamp in enumerate(stamps):
-        left = right = None
-        if image_source is not None:
-            left = lambda i=i: image_source.get(wanted["left"], i)  # noqa: E731
-            if "right" in wanted:
-                right = lambda i=i: image_source.get(wanted["right"], i)  # noqa: E731
-        frames.append(SourceFrame(
-            int(stamp), left=left, right=right,
-            odom=odom_records[i] if odom_records is not None else None,
-            ground_truth=poses_to_records(gt_poses[i : i + 1])[0] if gt_poses is not None and np.isfinite(gt_poses[i]).all() else None,
-        ))
-    config = {**asdict(options), "source": str(path), "topics_used": wanted}
+    def loaders(role: str) -> list | None:
+        if image_source is None or role not in wanted:
+            return None
+        return [lambda i=i: image_source.get(wanted[role], i) for i in range(len(stamps))]
+
+    frames = make_frames(stamps, left=loaders("left"), right=loaders("right"), odometry=odom_poses, ground_truth=gt_poses)
+    config = options_config(options, source=path, topics_used=wanted)
     header = LogHeader(
         dataset=options.dataset or path.stem,
         recorder="ros2",

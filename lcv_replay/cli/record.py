@@ -79,7 +79,13 @@ def recording_progress(description: str, *, quiet: bool) -> Iterator:
         yield update
 
 
-def _finish(stats, quiet: bool) -> None:
+def _run_recorder(name: str, source, out: Path, options, *, force: bool, quiet: bool) -> None:
+    """Run the registered recorder ``name`` with a progress bar, then print its one-line summary."""
+    from recorders import get_recorder
+
+    record = get_recorder(name).load()
+    with recording_progress(name, quiet=quiet) as progress:
+        stats = record(source, out, options, force=force, progress=progress)
     if not quiet:
         typer.echo(stats.summary())
 
@@ -105,7 +111,7 @@ def record_g2o_command(
     quiet: bool = QUIET_OPTION,
 ) -> None:
     """Record a 2-D pose graph: odometry chain -> /odom, other edges -> /loop_candidates."""
-    from recorders.g2o import G2oOptions, record_g2o
+    from recorders.g2o import G2oOptions
 
     options = G2oOptions(
         ground_truth=ground_truth,
@@ -122,9 +128,7 @@ def record_g2o_command(
         source=source,
         dataset=dataset,
     )
-    with recording_progress("g2o", quiet=quiet) as progress:
-        stats = record_g2o(graph, out, options, force=force, progress=progress)
-    _finish(stats, quiet)
+    _run_recorder("g2o", graph, out, options, force=force, quiet=quiet)
 
 
 @record_app.command("kitti")
@@ -146,7 +150,7 @@ def record_kitti_command(
     quiet: bool = QUIET_OPTION,
 ) -> None:
     """Record a KITTI odometry sequence (stereo images, calibration, odometry, ground truth)."""
-    from recorders.kitti import KittiOptions, record_kitti
+    from recorders.kitti import KittiOptions
 
     options = KittiOptions(
         sequence=sequence,
@@ -161,9 +165,7 @@ def record_kitti_command(
         image_format=image_format.value,  # type: ignore[arg-type]
         jpeg_quality=jpeg_quality,
     )
-    with recording_progress("kitti", quiet=quiet) as progress:
-        stats = record_kitti(source, out, options, force=force, progress=progress)
-    _finish(stats, quiet)
+    _run_recorder("kitti", source, out, options, force=force, quiet=quiet)
 
 
 @record_app.command("euroc")
@@ -183,7 +185,7 @@ def record_euroc_command(
     quiet: bool = QUIET_OPTION,
 ) -> None:
     """Record a EuRoC (ASL layout) stereo sequence, rectified, with its ground truth."""
-    from recorders.euroc import EurocOptions, record_euroc
+    from recorders.euroc import EurocOptions
 
     options = EurocOptions(
         rectify=rectify,
@@ -196,9 +198,7 @@ def record_euroc_command(
         image_format=image_format.value,  # type: ignore[arg-type]
         jpeg_quality=jpeg_quality,
     )
-    with recording_progress("euroc", quiet=quiet) as progress:
-        stats = record_euroc(source, out, options, force=force, progress=progress)
-    _finish(stats, quiet)
+    _run_recorder("euroc", source, out, options, force=force, quiet=quiet)
 
 
 class StampSourceChoice(str, enum.Enum):
@@ -227,7 +227,7 @@ def record_folder_command(
     quiet: bool = QUIET_OPTION,
 ) -> None:
     """Record left/right image folders plus a timestamped planar odometry CSV."""
-    from recorders.folder import FolderOptions, record_folder
+    from recorders.folder import FolderOptions
 
     options = FolderOptions(
         left=left,
@@ -242,9 +242,7 @@ def record_folder_command(
         image_format=image_format.value,  # type: ignore[arg-type]
         jpeg_quality=jpeg_quality,
     )
-    with recording_progress("folder", quiet=quiet) as progress:
-        stats = record_folder(source, out, options, force=force, progress=progress)
-    _finish(stats, quiet)
+    _run_recorder("folder", source, out, options, force=force, quiet=quiet)
 
 
 class TimeSourceChoice(str, enum.Enum):
@@ -275,7 +273,7 @@ def record_ros2_command(
     quiet: bool = QUIET_OPTION,
 ) -> None:
     """Import a ROS 2 MCAP: stereo images, nav_msgs/Odometry (planar), optional ground truth."""
-    from recorders.ros2 import Ros2Options, record_ros2
+    from recorders.ros2 import Ros2Options
 
     options = Ros2Options(
         left_topic=left_topic,
@@ -293,6 +291,4 @@ def record_ros2_command(
         image_format=image_format.value,  # type: ignore[arg-type]
         jpeg_quality=jpeg_quality,
     )
-    with recording_progress("ros2", quiet=quiet) as progress:
-        stats = record_ros2(bag, out, options, force=force, progress=progress)
-    _finish(stats, quiet)
+    _run_recorder("ros2", bag, out, options, force=force, quiet=quiet)

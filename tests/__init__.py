@@ -1,0 +1,1 @@
+"""lcv-replay tests (a package, so that test folders such as tests/recorders never shadow the top-level packages)."""
