@@ -2,7 +2,8 @@
 
 Every recorder is a function ``record_<name>(source, out_path, options, *, force=False,
 progress=None) -> RecordStats`` (see :class:`Recorder`), with a frozen ``<Name>Options``
-dataclass. :data:`RECORDERS` maps the CLI name to its module and function; modules are imported
+dataclass; ``synthetic`` has no source (``record_synthetic(out_path, options, ...)``,
+``takes_source=False``). :data:`RECORDERS` maps the CLI name to its module and function; modules are imported
 only when a recorder is looked up, so that listing them stays cheap.
 """
 
@@ -26,13 +27,18 @@ class Recorder(Protocol):
 
 @dataclass(frozen=True)
 class RecorderInfo:
-    """Registry entry: CLI ``name``, the ``module`` and ``function`` that record, a one-line ``summary``."""
+    """Registry entry: CLI ``name``, the ``module`` and ``function`` that record, a one-line ``summary``.
+
+    ``takes_source`` is false for recorders that generate their data (``synthetic``): their
+    function has no ``source`` argument.
+    """
 
     name: str
     module: str
     function: str
     options: str
     summary: str
+    takes_source: bool = True
 
     def load(self) -> Recorder:
         """Import the module and return the recorder function."""
@@ -46,7 +52,7 @@ class RecorderInfo:
 RECORDERS: dict[str, RecorderInfo] = {
     info.name: info
     for info in (
-        RecorderInfo("synthetic", "recorders.synthetic", "record_synthetic", "SyntheticOptions", "the built-in procedural street world"),
+        RecorderInfo("synthetic", "recorders.synthetic", "record_synthetic", "SyntheticOptions", "the built-in procedural street world", takes_source=False),
         RecorderInfo("kitti", "recorders.kitti", "record_kitti", "KittiOptions", "KITTI odometry layout (sequences/SS/image_0, image_1, calib.txt, times.txt)"),
         RecorderInfo("euroc", "recorders.euroc", "record_euroc", "EurocOptions", "EuRoC ASL layout (mav0/cam0, mav0/cam1, state_groundtruth_estimate0)"),
         RecorderInfo("folder", "recorders.folder", "record_folder", "FolderOptions", "left/right image folders plus a planar odometry CSV"),
