@@ -1,5 +1,157 @@
-"""`lcv-replay` commands: bench_retrieval."""
+"""`lcv-replay bench retrieval` and `lcv-replay bench descriptor-speed`."""
 
 from __future__ import annotations
 
+import json
+import math
+import platform
+from pathlib import Path
+from typing import Optional
+
+import typer
+
 from lcv_replay.cli.app import app, bench_app, record_app  # noqa: F401
+
+DEFAULT_BACKENDS = ["efficientnet-lite0", "thumbnail"]
+
+
+@bench_app.command("retrieval")
+def bench_retrieval(
+    images_dir: Path = typer.Argument(..., help="Folder of images in time order (natural sort: 2.jpg before 10.jpg)."),
+    truth_matrix: Path = typer.Option(..., "--truth-matrix", help="N x N truth matrix: an image (white = same place) or a 0/1 text file."),
+    exclude_frames: Optional[int] = typer.Option(None, "--exclude-frames", help="Δt: frames closer than this are not eligible (default: retrieval.exclusion_frames)."),
+    backend: Optional[list[str]] = typer.Option(None, "--backend", help="Descriptor backend; repeat for several (default: efficientnet-lite0 and thumbnail)."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the per-backend results as JSON."),
+    config_file: Optional[Path] = typer.Option(None, "--config", help="TOML config; its [retrieval] table applies."),
+    top_k: Optional[int] = typer.Option(None, "--top-k", help="N_r, candidates per query (default 10)."),
+    hamming_threshold: Optional[int] = typer.Option(None, "--hamming-threshold", help="T_b (default 3)."),
+    code_bits: Optional[int] = typer.Option(None, "--code-bits", help="N_b (default 20)."),
+    pooling: Optional[str] = typer.Option(None, "--pooling", help="efficientnet-lite0 pooling: avg, gem or multi (default multi)."),
+    seed: Optional[int] = typer.Option(None, "--seed", help="ITQ seed (default 0)."),
+    timing_runs: int = typer.Option(5, "--timing-runs", help="Timed passes over the images for descriptor speed (median reported)."),
+    force: bool = typer.Option(False, "--force", help="Overwrite the JSON file."),
+) -> None:
+    """Recall@1, recall@N_r and candidate precision per backend on an image folder with a truth matrix.
+
+    Runs the full retrieval pipeline (descriptor, PCA, binary codes, Hamming prefilter, L2
+    re-rank) with PCA/ITQ fitted on the whole folder, e.g. on ../shared/data/rtabmap_corridor
+    with --exclude-frames 20.
+    """
+    from lcv_replay.bench.retrieval import bench_backend, list_images, load_truth_matrix, query_frames, read_image
+    from lcv_replay.config import load_config, replace_in
+    from lcv_replay.errors import ConfigError, RetrievalError
+    from lcv_replay.fileio import check_output_path, write_text_atomic
+    from lcv_replay.retrieval.descriptors import available_backends
+
+    if json_out is not None:
+        check_output_path(json_out, force=force)
+    if timing_runs < 0:
+        raise ConfigError(f"--timing-runs {timing_runs} must be >= 0")
+    config = replace_in(
+        load_config(config_file).retrieval,
+        exclusion_frames=exclude_frames,
+        top_k=top_k,
+        hamming_threshold=hamming_threshold,
+        code_bits=code_bits,
+        pooling=pooling,
+        seed=seed,
+    )
+    names = backend or DEFAULT_BACKENDS
+    known = available_backends()
+    for name in names:
+        if name not in known:
+            raise ConfigError(f"unknown descriptor backend '{name}'", fix=f"use one of {', '.join(sorted(known))}")
+    paths = list_images(images_dir, exclude=[truth_matrix])
+    truth = load_truth_matrix(truth_matrix, len(paths))
+    if len(query_frames(truth, config.exclusion_frames)) == 0:
+        raise RetrievalError(
+            f"no image has a true match more than Δt = {config.exclusion_frames} frames earlier, so nothing can be scored",
+            path=truth_matrix,
+            fix="pass a smaller --exclude-frames (e.g. 20 for rtabmap_corridor)",
+        )
+    images = [read_image(p) for p in paths]
+    reports = []
+    for name in names:
+        typer.echo(f"{name}: describing {len(images)} images ...", err=True)
+        reports.append(bench_backend(name, images, truth, config, timing_runs=timing_runs))
+    typer.echo(_table(reports, config.top_k))
+    if json_out is not None:
+        payload = {
+            "images_dir": str(images_dir),
+            "truth_matrix": str(truth_matrix),
+            "images": len(images),
+            "exclusion_frames": config.exclusion_frames,
+            "fit": "whole-log",
+            "machine": _machine(),
+            "backends": [r.as_dict() for r in reports],
+        }
+        write_text_atomic(json_out, json.dumps(payload, indent=2, allow_nan=True) + "\n")
+        typer.echo(f"wrote {json_out}", err=True)
+
+
+@bench_app.command("descriptor-speed")
+def bench_descriptor_speed(
+    variant: Optional[list[str]] = typer.Option(None, "--variant", help="Ladder rung; repeat for several (default: all)."),
+    batch: int = typer.Option(8, "--batch", help="Images per forward pass."),
+    runs: int = typer.Option(20, "--runs", help="Timed forward passes per process."),
+    repeats: int = typer.Option(3, "--repeats", help="Fresh processes per variant (median of their medians is reported)."),
+    size: int = typer.Option(224, "--size", help="Input size in pixels (a multiple of 32)."),
+    threads: int = typer.Option(0, "--threads", help="torch threads for tuned variants (0 = one per core)."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the ladder as JSON."),
+    force: bool = typer.Option(False, "--force", help="Overwrite the JSON file."),
+) -> None:
+    """EfficientNet-Lite0 ms/image for each optimisation step (untuned eager ... folded + channels_last ...)."""
+    from lcv_replay.bench.descriptor_speed import VARIANTS, speed_ladder
+    from lcv_replay.errors import ConfigError
+    from lcv_replay.fileio import check_output_path, write_text_atomic
+
+    if json_out is not None:
+        check_output_path(json_out, force=force)
+    names = variant or list(VARIANTS)
+    for name in names:
+        if name not in VARIANTS:
+            raise ConfigError(f"unknown variant '{name}'", fix=f"use one of {', '.join(VARIANTS)}")
+    if batch < 1 or runs < 1 or repeats < 1 or size % 32 or size < 32:
+        raise ConfigError("--batch, --runs and --repeats must be >= 1 and --size a multiple of 32")
+    rows = speed_ladder(names, batch=batch, runs=runs, size_px=size, repeats=repeats, threads=threads)
+    header = f"{'variant':26s} {'ms/img':>8s} {'min':>7s} {'img/s':>7s} {'warm-up s':>9s} {'cos min':>9s} {'max|Δ|':>9s} {'load':>5s}"
+    lines = [header, "-" * len(header)]
+    for r in rows:
+        lines.append(
+            f"{r['variant']:26s} {r['ms_per_image_median']:8.2f} {r['ms_per_image_min']:7.2f} {r['frames_per_s_median']:7.1f} "
+            f"{r['warmup_s_median']:9.1f} {r['cosine_min']:9.6f} {r['max_abs_diff']:9.2e} {r['loadavg_1min_median']:5.1f}"
+        )
+    typer.echo("\n".join(lines))
+    if json_out is not None:
+        write_text_atomic(json_out, json.dumps({"machine": _machine(), "variants": rows}, indent=2) + "\n")
+        typer.echo(f"wrote {json_out}", err=True)
+
+
+def _table(reports, top_k: int) -> str:
+    def f(v: float, fmt: str) -> str:
+        return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
+
+    header = (
+        f"{'backend':20s} {'dim':>5s} {'queries':>7s} {'R@1':>6s} {f'R@{top_k}':>6s} {'prec':>6s} {'cands':>6s} "
+        f"{'prefilt':>7s} {'exh R@1':>7s} {'img/s':>7s} {'warm-up s':>9s}"
+    )
+    lines = [header, "-" * len(header)]
+    for r in reports:
+        lines.append(
+            f"{r.backend:20s} {r.dim:5d} {r.queries:7d} {f(r.recall_at_1, '.3f'):>6s} {f(r.recall_at_10, '.3f'):>6s} "
+            f"{f(r.candidate_precision, '.3f'):>6s} {r.candidates:6d} {r.mean_prefilter_size:7.2f} "
+            f"{f(r.exhaustive_recall_at_1, '.3f'):>7s} {f(r.descriptor_frames_per_s, '.1f'):>7s} {r.descriptor_warmup_s:9.2f}"
+        )
+    return "\n".join(lines)
+
+
+def _machine() -> dict:
+    import os
+
+    return {
+        "cpu_count": os.cpu_count(),
+        "machine": platform.machine(),
+        "processor": platform.processor(),
+        "python": platform.python_version(),
+        "loadavg_1min": os.getloadavg()[0],
+    }

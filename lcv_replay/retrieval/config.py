@@ -21,6 +21,22 @@ class RetrievalConfig:
     fit: Literal["online", "whole-log"] = "online"  # fit PCA/codes on the first Δt frames, or on all
     itq_iterations: int = 50  # ITQ rotation iterations
     seed: int = 0
+    # --- descriptor (efficientnet-lite0) ---
+    # descriptor pooling: "multi" = GeM of stages 5-7 + head, each L2-normalised, concatenated (1904-D);
+    # it beat "avg" (head average, 1280-D) and "gem" on rtabmap_corridor (docs in bench/retrieval.py)
+    pooling: Literal["avg", "gem", "multi"] = "multi"
+    gem_p: float = 3.0  # GeM exponent (pooling "gem" and "multi")
+    num_threads: int = 0  # torch intra-op threads; 0 = one per available core
+    tune_allocator: bool = True  # glibc mallopt for torch activations (see retrieval/efficientnet.py)
+    # --- descriptor (thumbnail baseline, SeqSLAM-style) ---
+    thumbnail_width_px: int = 64
+    thumbnail_height_px: int = 32
+    thumbnail_patch_px: int = 8  # patch normalisation window
+    # --- index and cache ---
+    rerank: Literal["descriptor", "pca"] = "descriptor"  # L2 re-rank on full descriptors or PCA vectors
+    index_strategy: Literal["auto", "scan", "table"] = "auto"  # Hamming prefilter (retrieval/index.py)
+    cache: bool = True  # reuse descriptors across runs (retrieval/cache.py)
+    cache_dir: str = ""  # "" = $LCV_CACHE_DIR, else $XDG_CACHE_HOME/lcv-replay/descriptors
 
     def __post_init__(self) -> None:
         from lcv_replay.config import require
@@ -32,3 +48,8 @@ class RetrievalConfig:
         require(0 <= self.hamming_threshold <= self.code_bits, "retrieval.hamming_threshold", self.hamming_threshold, "0..code_bits")
         require(self.input_size_px >= 32 and self.input_size_px % 32 == 0, "retrieval.input_size_px", self.input_size_px, "a multiple of 32")
         require(self.batch_size >= 1, "retrieval.batch_size", self.batch_size, "an integer >= 1")
+        require(self.itq_iterations >= 0, "retrieval.itq_iterations", self.itq_iterations, "an integer >= 0")
+        require(self.gem_p >= 1.0, "retrieval.gem_p", self.gem_p, "a number >= 1")
+        require(self.num_threads >= 0, "retrieval.num_threads", self.num_threads, "an integer >= 0 (0 = all cores)")
+        require(self.thumbnail_width_px >= 8 and self.thumbnail_height_px >= 8, "retrieval.thumbnail_width_px/height_px", (self.thumbnail_width_px, self.thumbnail_height_px), "sizes >= 8")
+        require(1 <= self.thumbnail_patch_px <= min(self.thumbnail_width_px, self.thumbnail_height_px), "retrieval.thumbnail_patch_px", self.thumbnail_patch_px, "1..min(thumbnail width, height)")
