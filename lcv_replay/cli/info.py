@@ -47,7 +47,7 @@ def bench_log_command(
     image_format: str = typer.Option("png", "--image-format", help="png, jpeg or raw."),
     compression: str = typer.Option("zstd", help="zstd, lz4 or none."),
     repeats: int = typer.Option(3, help="Runs per source; medians are reported."),
-    corridor: Path = typer.Option(None, help="Folder of the corridor JPEGs (default ../shared/data/rtabmap_corridor)."),
+    corridor: Path = typer.Option(None, help="Folder of the corridor JPEGs (default $LCV_SHARED_DATA/rtabmap_corridor)."),
     output: Path = typer.Option(Path("bench-out/log_bench.json"), "-o", "--output", help="JSON results."),
 ) -> None:
     import json
@@ -61,7 +61,10 @@ def bench_log_command(
     except ValueError:
         raise ConfigError(f"resolution {resolution!r} is not WxH", fix="e.g. --resolution 640x480") from None
     if corridor is None:
-        corridor = Path(__file__).resolve().parents[3] / "shared" / "data" / "rtabmap_corridor"
+        import os
+
+        shared = os.environ.get("LCV_SHARED_DATA", Path(__file__).resolve().parents[3] / "shared" / "data")
+        corridor = Path(shared) / "rtabmap_corridor"
     results = [
         run_log_benchmark(
             frames=frames, width_px=width, height_px=height, source=s, corridor=corridor,

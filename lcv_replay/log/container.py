@@ -352,13 +352,19 @@ def _scan_chunk(data: bytes, chunk_no: int, container: Container, path: Path) ->
         if opcode == _OP_MESSAGE:
             channel_id, _seq, log_time, _pub = _MESSAGE_HEADER.unpack_from(body)
             rows.setdefault(channel_id, []).append((log_time, chunk_no, offset))
-        elif opcode == _OP_SCHEMA:
-            schema = _read_record(Schema, body)
-            container.schemas.setdefault(schema.id, schema)
-        elif opcode == _OP_CHANNEL:
-            channel = _read_record(Channel, body)
-            container.channels.setdefault(channel.id, channel)
+        else:
+            _register_definition(container, opcode, body)
     return {cid: np.array(r, dtype=ENTRY_DTYPE) for cid, r in rows.items()}
+
+
+def _register_definition(container: Container, opcode: int, body: bytes) -> None:
+    """Record a Schema or Channel record (the first definition of an id wins); ignore other opcodes."""
+    if opcode == _OP_SCHEMA:
+        schema = _read_record(Schema, body)
+        container.schemas.setdefault(schema.id, schema)
+    elif opcode == _OP_CHANNEL:
+        channel = _read_record(Channel, body)
+        container.channels.setdefault(channel.id, channel)
 
 
 def _remaining_chunks(f, pos: int, size: int):
@@ -425,12 +431,8 @@ def _linear_scan(f, container: Container, size: int, *, recover: bool) -> None:
         elif opcode in (_OP_SCHEMA, _OP_CHANNEL, _OP_METADATA, _OP_MESSAGE, _OP_HEADER):
             body = f.read(length)
             try:
-                if opcode == _OP_SCHEMA:
-                    schema = _read_record(Schema, body)
-                    container.schemas.setdefault(schema.id, schema)
-                elif opcode == _OP_CHANNEL:
-                    channel = _read_record(Channel, body)
-                    container.channels.setdefault(channel.id, channel)
+                if opcode in (_OP_SCHEMA, _OP_CHANNEL):
+                    _register_definition(container, opcode, body)
                 elif opcode == _OP_METADATA:
                     record = _read_record(Metadata, body)
                     container.metadata[record.name] = dict(record.metadata)

@@ -68,8 +68,22 @@ def write_golden(path: Path, *, force: bool = False) -> None:
             writer.write_true_loop(q, m, stamp3)
 
 
-def _image_digest(image: np.ndarray) -> dict:
+def image_digest(image: np.ndarray) -> dict:
+    """Shape and SHA-256 of an image's pixels."""
     return {"shape": list(image.shape), "sha256": hashlib.sha256(np.ascontiguousarray(image).tobytes()).hexdigest()}
+
+
+def candidate_record(c: LoopCandidate) -> dict:
+    """A candidate as a JSON-ready dict (the layout of golden_expected.json)."""
+    return {
+        "query_frame": c.query_frame,
+        "match_frame": c.match_frame,
+        "similarity": c.similarity,
+        "hamming": c.hamming,
+        "source": c.source,
+        "T_match_query": None if c.T_match_query is None else list(c.T_match_query),
+        "information": None if c.information is None else list(c.information),
+    }
 
 
 def expected_json() -> dict:
@@ -109,25 +123,14 @@ def expected_json() -> dict:
                 "stamp_ns": f["stamp_ns"],
                 "odom": list(f["odom"]),
                 "ground_truth": None if f["ground_truth"] is None else list(f["ground_truth"]),
-                "left": _image_digest(f["left"]),
-                "right": _image_digest(f["right"]),
+                "left": image_digest(f["left"]),
+                "right": image_digest(f["right"]),
                 "candidates": [[c.query_frame, c.match_frame] for c in inputs["candidates"] if c.query_frame == f["index"]],
                 "true_loops": [list(p) for p in inputs["true_loops"] if p[0] == f["index"]],
             }
             for f in inputs["frames"]
         ],
-        "candidates": [
-            {
-                "query_frame": c.query_frame,
-                "match_frame": c.match_frame,
-                "similarity": c.similarity,
-                "hamming": c.hamming,
-                "source": c.source,
-                "T_match_query": None if c.T_match_query is None else list(c.T_match_query),
-                "information": None if c.information is None else list(c.information),
-            }
-            for c in inputs["candidates"]
-        ],
+        "candidates": [candidate_record(c) for c in inputs["candidates"]],
         "true_loops": [list(p) for p in inputs["true_loops"]],
     }
 

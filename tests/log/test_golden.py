@@ -6,7 +6,6 @@ inputs, not by reading the MCAP back.
 
 from __future__ import annotations
 
-import hashlib
 import importlib.util
 import json
 from pathlib import Path
@@ -22,9 +21,8 @@ DATA = Path(__file__).resolve().parents[1] / "data"
 def _decoded(path: Path) -> dict:
     """Everything the reader decodes from a log, in the layout of golden_expected.json."""
 
-    def digest(image: np.ndarray) -> dict:
-        return {"shape": list(image.shape), "sha256": hashlib.sha256(np.ascontiguousarray(image).tobytes()).hexdigest()}
-
+    make_golden = _make_golden_module()
+    digest, candidate_record = make_golden.image_digest, make_golden.candidate_record
     with open_log(path) as reader:
         info = reader.info
         calib = reader.calibration
@@ -59,18 +57,7 @@ def _decoded(path: Path) -> dict:
                 }
                 for f in reader.frames()
             ],
-            "candidates": [
-                {
-                    "query_frame": c.query_frame,
-                    "match_frame": c.match_frame,
-                    "similarity": c.similarity,
-                    "hamming": c.hamming,
-                    "source": c.source,
-                    "T_match_query": None if c.T_match_query is None else list(c.T_match_query),
-                    "information": None if c.information is None else list(c.information),
-                }
-                for c in reader.loop_candidates()
-            ],
+            "candidates": [candidate_record(c) for c in reader.loop_candidates()],
             "true_loops": sorted(list(p) for p in reader.true_loops()),
         }
 
