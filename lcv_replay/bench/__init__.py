@@ -1,0 +1,1 @@
+"""Benchmarks behind ``lcv-replay bench ...``: pure functions that measure, score and report."""
