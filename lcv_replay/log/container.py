@@ -313,6 +313,9 @@ def _load_from_summary(
         record = _read_record(Metadata, raw[9:])
         container.metadata[record.name] = dict(record.metadata)
 
+    if not chunk_indexes:  # an unchunked file: its messages are top-level records, found by a scan
+        _linear_scan(f, container, size, recover=False)
+        return
     tables: dict[int, list[np.ndarray]] = {}
     chunk_indexes.sort(key=lambda c: c.chunk_start_offset)
     for chunk_no, index in enumerate(chunk_indexes):

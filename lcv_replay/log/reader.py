@@ -192,9 +192,10 @@ class LogReader:
         :class:`ImageRef` (decoded on ``.decode()``). ``Frame.candidates``/``true_loops`` hold the
         log's candidates/labels whose ``query_frame`` is the frame's index.
         """
-        first, last = self._window(start_offset_s, duration_s)
-        if first >= last:
-            return
+        first, last = self._window(start_offset_s, duration_s)  # raises here, not at the first next()
+        return self._iter_frames(first, last)
+
+    def _iter_frames(self, first: int, last: int) -> Iterator[Frame]:
         t = self._tables
         candidate_rows = _rows_by_frame(t.candidates, t.candidate_frames, first, last)
         true_loop_rows = _rows_by_frame(t.true_loops, t.true_loop_frames, first, last)

@@ -143,3 +143,32 @@ def test_real_kitti_stereo_pair_round_trips_losslessly(tmp_path):
         np.testing.assert_array_equal(frames[0].left.decode(), left)
         np.testing.assert_array_equal(frames[0].right.decode(), right)
         np.testing.assert_array_equal(frames[1].left.decode(), right)
+
+
+def test_unchunked_mcap_from_another_writer_reads_the_same(tmp_path):
+    """A file with top-level message records (no chunks) is indexed by a scan and reads identically."""
+    from mcap.writer import Writer as McapWriter
+
+    path = tmp_path / "log.mcap"
+    exp = write_synthetic_log(path, frames=4)
+    flat = tmp_path / "flat.mcap"
+    with open(path, "rb") as src, open(flat, "wb") as dst:
+        reader = make_reader(src)
+        summary = reader.get_summary()
+        writer = McapWriter(dst, use_chunking=False)
+        writer.start()
+        for schema in summary.schemas.values():
+            writer.register_schema(schema.name, schema.encoding, schema.data)
+        for channel in summary.channels.values():
+            writer.register_channel(channel.topic, channel.message_encoding, channel.schema_id)
+        for record in reader.iter_metadata():
+            writer.add_metadata(record.name, record.metadata)
+        for _, channel, message in reader.iter_messages(log_time_order=False):
+            writer.add_message(channel.id, message.log_time, message.data, message.publish_time, message.sequence)
+        writer.finish()
+    with open_log(flat) as reader:
+        assert reader.info.chunk_count == 0 and reader.info.frames == 4
+        assert reader.info.metadata["dataset"] == "synthetic-test"
+        for frame in reader.frames():
+            np.testing.assert_array_equal(frame.left.decode(), exp.left[frame.index])
+        assert reader.loop_candidates() == exp.candidates
