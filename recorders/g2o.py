@@ -194,13 +194,16 @@ def _toro_information(values: list[float]) -> Information6:
     return (ixx, ixy, ixt, iyy, iyt, itt)
 
 
-def _covariance_information(values: list[float], path: Path, line: int) -> Information6:
-    """Row-major 3x3 covariance -> information upper triangle."""
-    cov = np.asarray(values, dtype=np.float64).reshape(3, 3)
-    try:
-        return upper_triangle(np.linalg.inv(0.5 * (cov + cov.T)))
-    except np.linalg.LinAlgError:
-        raise RecorderError(f"line {line}: singular covariance matrix", path=path, fix="repair the edge's covariance") from None
+def _covariance_information(values: np.ndarray, path: Path, lines: list[int]) -> list[Information6]:
+    """``(M, 9)`` row-major 3x3 covariances -> ``M`` information upper triangles."""
+    cov = np.asarray(values, dtype=np.float64).reshape(-1, 3, 3)
+    cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
+    singular = np.abs(np.linalg.det(cov)) < 1e-300
+    if singular.any():
+        line = lines[int(np.argmax(singular))]
+        raise RecorderError(f"line {line}: singular covariance matrix", path=path, fix="repair the edge's covariance")
+    info = np.linalg.inv(cov)
+    return [upper_triangle(m) for m in info]
 
 
 def _parse_tagged(path: Path, lines: list[str]) -> tuple[dict[int, tuple[float, float, float]], list[G2oEdge]]:
@@ -246,8 +249,8 @@ def _parse_untagged(path: Path) -> tuple[dict[int, tuple[float, float, float]], 
     if widths == {3}:
         vertices = {k: (v[0], v[1], v[2]) for k, (_, v) in enumerate(rows)}
     elif widths == {14}:
-        for line_no, v in rows:
-            info = _covariance_information(v[5:14], path, line_no)
+        infos = _covariance_information(np.array([v[5:14] for _, v in rows]), path, [ln for ln, _ in rows])
+        for (line_no, v), info in zip(rows, infos):
             edges.append(G2oEdge(int(v[0]), int(v[1]), Pose2D(v[2], v[3], v[4]), info, line_no))
     elif widths == {11}:
         for line_no, v in rows:
