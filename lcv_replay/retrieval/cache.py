@@ -198,15 +198,14 @@ def describe_frames(
         nonlocal new_entries
         todo = [i for i, (_, image, _) in enumerate(pending) if image is not None]
         vectors = backend.describe([pending[i][1] for i in todo]) if todo else None
-        computed = {i: vectors[k] for k, i in enumerate(todo)} if vectors is not None else {}
-        for i, (frame, _, descriptor) in enumerate(pending):
-            if i in computed:
-                descriptor = np.asarray(computed[i], dtype=np.float32)
-                known[frame.index] = descriptor
-                new_entries += 1
-                stats.described += 1
-            yield frame, descriptor
+        computed = {i: np.asarray(vectors[k], dtype=np.float32) for k, i in enumerate(todo)} if todo else {}
+        for i, descriptor in computed.items():  # cached before yielding: an early stop keeps the batch
+            known[pending[i][0].index] = descriptor
+        new_entries += len(computed)
+        stats.described += len(computed)
+        batch = [(frame, computed.get(i, descriptor)) for i, (frame, _, descriptor) in enumerate(pending)]
         pending.clear()
+        yield from batch
 
     try:
         for frame in frames:
