@@ -35,6 +35,7 @@ front of them and are never hidden by it, so the z-buffer is needed among walls 
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 from dataclasses import dataclass, field
@@ -439,8 +440,7 @@ class SyntheticWorld:
         levels = self._textures.get(texture_id)
         if levels is None:
             cfg = self.config
-            image = render_facade(self.facade_specs[texture_id], cfg.texture_width_m, cfg.texture_height_m, cfg.texture_px_per_m)
-            levels = _pyramid(image)
+            levels = list(_facade_pyramid(self.facade_specs[texture_id], cfg.texture_width_m, cfg.texture_height_m, cfg.texture_px_per_m))
             with self._lock:
                 levels = self._textures.setdefault(texture_id, levels)
         return levels
@@ -448,10 +448,7 @@ class SyntheticWorld:
     def _ground_levels(self) -> list[np.ndarray]:
         if self._ground is None:
             cfg = self.config
-            tile = render_street_tile(
-                self.seed * 7919 + 17, cfg.block_pitch_m, cfg.road_width_m / 2, cfg.street_width_m / 2, cfg.ground_px_per_m
-            )
-            levels = _pyramid(tile, wrap=True)
+            levels = list(_street_pyramid(self.seed * 7919 + 17, cfg.block_pitch_m, cfg.road_width_m / 2, cfg.street_width_m / 2, cfg.ground_px_per_m))
             with self._lock:
                 if self._ground is None:
                     self._ground = levels
@@ -459,7 +456,7 @@ class SyntheticWorld:
 
     def _sky_panorama(self) -> np.ndarray:
         if self._sky is None:
-            sky = render_sky(self.seed * 104729 + 3)
+            sky = _sky_pixels(self.seed * 104729 + 3)
             with self._lock:
                 if self._sky is None:
                     self._sky = sky
@@ -472,6 +469,29 @@ _FOG_GREY = 205.0
 def _check_size(width_px: int, height_px: int) -> None:
     if not (16 <= int(width_px) <= 8192 and 16 <= int(height_px) <= 8192):
         raise ConfigError(f"image size {width_px}x{height_px} is out of range", fix="use 16..8192 pixels per side, e.g. 640x480")
+
+
+# Textures depend only on their spec and size, so they are shared between worlds of one process
+# (tests, benchmarks and repeated recordings regenerate nothing). Cached arrays are read-only.
+@functools.lru_cache(maxsize=128)
+def _facade_pyramid(spec: FacadeSpec, width_m: float, height_m: float, px_per_m: float) -> tuple[np.ndarray, ...]:
+    return _read_only(_pyramid(render_facade(spec, width_m, height_m, px_per_m)))
+
+
+@functools.lru_cache(maxsize=4)
+def _street_pyramid(seed: int, pitch_m: float, road_half_width_m: float, building_line_m: float, px_per_m: float) -> tuple[np.ndarray, ...]:
+    return _read_only(_pyramid(render_street_tile(seed, pitch_m, road_half_width_m, building_line_m, px_per_m), wrap=True))
+
+
+@functools.lru_cache(maxsize=4)
+def _sky_pixels(seed: int) -> np.ndarray:
+    return _read_only([render_sky(seed)])[0]
+
+
+def _read_only(arrays: list[np.ndarray]) -> tuple[np.ndarray, ...]:
+    for array in arrays:
+        array.flags.writeable = False
+    return tuple(arrays)
 
 
 def _pyramid(image: np.ndarray, *, wrap: bool = False) -> list[np.ndarray]:
