@@ -133,7 +133,7 @@ def load_truth_matrix(path: Path, n_images: int) -> np.ndarray:
         raise RetrievalError(
             f"truth matrix is {truth.shape[0]}x{truth.shape[1]} but the folder has {n_images} images",
             path=path,
-            fix="pass the matrix that belongs to this image folder",
+            fix="pass the matrix that belongs to this image folder (every image file in it but the matrix counts)",
         )
     truth = truth | truth.T
     np.fill_diagonal(truth, False)
@@ -263,3 +263,172 @@ def bench_backend(
         exclusion_frames=config.exclusion_frames,
         config=to_dict(dataclasses.replace(config, backend=name)),
     )
+
+
+# --- MCAP logs with ground truth ------------------------------------------------------------------
+
+
+def truth_from_poses(positions_m: np.ndarray, radius_m: float) -> np.ndarray:
+    """``(N, N)`` bool: frames whose ground-truth positions are closer than ``radius_m`` (diagonal off).
+
+    Args:
+        positions_m: ``(N, 2)`` ground-truth ``x, y`` in metres; rows with NaN match nothing.
+    """
+    p = np.asarray(positions_m, dtype=np.float64)
+    d2 = ((p[:, None, :] - p[None, :, :]) ** 2).sum(axis=2)
+    truth = np.nan_to_num(d2, nan=np.inf) < radius_m**2
+    np.fill_diagonal(truth, False)
+    return truth
+
+
+@dataclass(frozen=True)
+class LogReport:
+    """Retrieval over a log, scored against ground-truth distances (the synthetic world report).
+
+    ``revisits_found`` = recall@N_r (queries with a true candidate among their list), and
+    ``false_candidate_fraction`` = 1 - candidate precision.
+    """
+
+    log: str
+    backend: str
+    frames: int
+    described: int
+    cached: int
+    corrupt: int
+    radius_m: float
+    exclusion_frames: int
+    fit: str
+    queries: int
+    revisits_found: float
+    recall_at_1: float
+    false_candidate_fraction: float
+    candidates: int
+    true_candidates: int
+    mean_prefilter_size: float
+    describe_s: float
+    retrieval_ms_per_frame: float
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def bench_log(path: Path, backend_name: str, config: RetrievalConfig, *, radius_m: float, cache_dir: Path | None = None) -> LogReport:
+    """Run the replay-style front end over an MCAP log (online fit unless ``config.fit``) and score it
+    against ground-truth positions: a candidate is true when the frames are within ``radius_m``."""
+    from lcv_replay.log.reader import open_log
+    from lcv_replay.retrieval.cache import DescribeStats, describe_frames, log_cache_key
+    from lcv_replay.retrieval.descriptors import make_backend
+    from lcv_replay.retrieval.retriever import Retriever
+
+    backend = make_backend(backend_name, config)
+    stats = DescribeStats()
+    start = time.perf_counter()
+    with open_log(path) as reader:
+        gt = reader.ground_truth()
+        if gt is None:
+            raise RetrievalError("the log has no ground truth to score retrieval against", path=path, fix="use a log with /ground_truth/pose")
+        key = log_cache_key(path) if config.cache else None
+        rows = [
+            (frame.index, d)
+            for frame, d in describe_frames(reader.frames(), backend, cache_key=key, cache_dir=cache_dir, batch_size=config.batch_size, stats=stats)
+            if d is not None
+        ]
+    describe_s = time.perf_counter() - start
+    if not rows:
+        raise RetrievalError("no frame of the log has a usable left image", path=path)
+    frames = np.array([f for f, _ in rows])
+    descriptors = np.stack([d for _, d in rows])
+    retriever = Retriever(config, dim=descriptors.shape[1])
+    if config.fit == "whole-log":
+        retriever.fit(descriptors)
+    candidates: dict[int, tuple[LoopCandidate, ...]] = {}
+    prefilter = []
+    start = time.perf_counter()
+    for f, d in zip(frames, descriptors):
+        out = retriever.add(int(f), d)
+        if out.diagnostics is not None:
+            prefilter.append(out.diagnostics.prefilter_size)
+        if out.candidates:
+            candidates[int(f)] = out.candidates
+    retrieval_s = time.perf_counter() - start
+    message = retriever.warmup_message()
+    if message:
+        log.warning("%s", message)
+    truth = truth_from_poses(np.asarray(gt)[:, :2], radius_m)
+    scores = score_candidates(candidates, truth, exclusion_frames=config.exclusion_frames, top_k=config.top_k)
+    return LogReport(
+        log=str(path),
+        backend=backend_name,
+        frames=int(truth.shape[0]),
+        described=stats.described,
+        cached=stats.cached,
+        corrupt=stats.corrupt,
+        radius_m=radius_m,
+        exclusion_frames=config.exclusion_frames,
+        fit=config.fit,
+        queries=scores.queries,
+        revisits_found=scores.recall_at_k,
+        recall_at_1=scores.recall_at_1,
+        false_candidate_fraction=1.0 - scores.candidate_precision if scores.candidates else float("nan"),
+        candidates=scores.candidates,
+        true_candidates=scores.true_candidates,
+        mean_prefilter_size=float(np.mean(prefilter)) if prefilter else 0.0,
+        describe_s=describe_s,
+        retrieval_ms_per_frame=1000.0 * retrieval_s / len(frames),
+    )
+
+
+# --- index query cost vs library size ---------------------------------------------------------------
+
+
+def index_query_times(
+    sizes: Sequence[int] = (1_000, 10_000, 100_000),
+    *,
+    strategies: Sequence[str] = ("scan", "table"),
+    vector_dim: int = 128,
+    code_bits: int = 20,
+    hamming_threshold: int = 3,
+    top_k: int = 10,
+    queries: int = 500,
+    seed: int = 0,
+) -> list[dict]:
+    """Median time of one query (prefilter + re-rank) and one add, at each library size.
+
+    Synthetic library: uniformly random ``code_bits`` codes (the ITQ target: balanced, uncorrelated
+    bits) and Gaussian vectors, frames ``0..size-1``; queries are random codes with every frame
+    eligible, so the prefilter returns ``~size * P / 2^N_b`` frames (``P`` probes) as it would for
+    well-spread real codes.
+    """
+    from lcv_replay.retrieval.index import CodeIndex
+
+    rng = np.random.default_rng(seed)
+    rows = []
+    for size in sizes:
+        codes = rng.integers(0, 1 << code_bits, size=size)
+        vectors = rng.normal(size=(size, vector_dim)).astype(np.float32)
+        q_codes = rng.integers(0, 1 << code_bits, size=queries)
+        q_vectors = rng.normal(size=(queries, vector_dim)).astype(np.float32)
+        for strategy in strategies:
+            index = CodeIndex(code_bits=code_bits, vector_dim=vector_dim, hamming_threshold=hamming_threshold, strategy=strategy)
+            start = time.perf_counter()
+            for f in range(size):
+                index.add(f, int(codes[f]), vectors[f])
+            add_us = 1e6 * (time.perf_counter() - start) / size
+            times, hits = [], []
+            for c, v in zip(q_codes, q_vectors):
+                t0 = time.perf_counter()
+                result = index.search(int(c), v, max_frame_index=size, top_k=top_k)
+                times.append(time.perf_counter() - t0)
+                hits.append(result.prefilter_size)
+            rows.append(
+                {
+                    "library_frames": size,
+                    "strategy": strategy,
+                    "vector_dim": vector_dim,
+                    "query_us_median": 1e6 * statistics.median(times),
+                    "query_us_p90": 1e6 * float(np.percentile(times, 90)),
+                    "add_us_mean": add_us,
+                    "mean_prefilter_size": float(np.mean(hits)),
+                }
+            )
+    return rows

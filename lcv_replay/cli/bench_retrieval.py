@@ -17,8 +17,10 @@ DEFAULT_BACKENDS = ["efficientnet-lite0", "thumbnail"]
 
 @bench_app.command("retrieval")
 def bench_retrieval(
-    images_dir: Path = typer.Argument(..., help="Folder of images in time order (natural sort: 2.jpg before 10.jpg)."),
-    truth_matrix: Path = typer.Option(..., "--truth-matrix", help="N x N truth matrix: an image (white = same place) or a 0/1 text file."),
+    images_dir: Path = typer.Argument(..., help="Folder of images in time order (natural sort: 2.jpg before 10.jpg), or an MCAP log with ground truth."),
+    truth_matrix: Optional[Path] = typer.Option(None, "--truth-matrix", help="N x N truth matrix of the folder: an image (white = same place) or a 0/1 text file."),
+    radius_m: float = typer.Option(10.0, "--radius-m", help="MCAP logs: frames closer than this (ground truth) are the same place (T_p)."),
+    fit: Optional[str] = typer.Option(None, "--fit", help="MCAP logs: 'online' (first Δt frames, default) or 'whole-log'. Folders always fit on the whole set."),
     exclude_frames: Optional[int] = typer.Option(None, "--exclude-frames", help="Δt: frames closer than this are not eligible (default: retrieval.exclusion_frames)."),
     backend: Optional[list[str]] = typer.Option(None, "--backend", help="Descriptor backend; repeat for several (default: efficientnet-lite0 and thumbnail)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the per-backend results as JSON."),
@@ -35,7 +37,8 @@ def bench_retrieval(
 
     Runs the full retrieval pipeline (descriptor, PCA, binary codes, Hamming prefilter, L2
     re-rank) with PCA/ITQ fitted on the whole folder, e.g. on ../shared/data/rtabmap_corridor
-    with --exclude-frames 20.
+    with --exclude-frames 20. Given an MCAP log instead, it runs the replay's front end (online fit,
+    descriptor cache) and scores candidates against ground-truth distances (--radius-m).
     """
     from lcv_replay.bench.retrieval import bench_backend, list_images, load_truth_matrix, query_frames, read_image
     from lcv_replay.config import load_config, replace_in
@@ -47,6 +50,8 @@ def bench_retrieval(
         check_output_path(json_out, force=force)
     if timing_runs < 0:
         raise ConfigError(f"--timing-runs {timing_runs} must be >= 0")
+    if fit is not None and fit not in ("online", "whole-log"):
+        raise ConfigError(f"--fit {fit!r} is not known", fix="use 'online' or 'whole-log'")
     config = replace_in(
         load_config(config_file).retrieval,
         exclusion_frames=exclude_frames,
@@ -55,12 +60,18 @@ def bench_retrieval(
         code_bits=code_bits,
         pooling=pooling,
         seed=seed,
+        fit=fit,
     )
     names = backend or DEFAULT_BACKENDS
     known = available_backends()
     for name in names:
         if name not in known:
             raise ConfigError(f"unknown descriptor backend '{name}'", fix=f"use one of {', '.join(sorted(known))}")
+    if images_dir.is_file():
+        _bench_log(images_dir, names, config, radius_m=radius_m, json_out=json_out)
+        return
+    if truth_matrix is None:
+        raise ConfigError("an image folder needs --truth-matrix FILE", fix="pass the folder's N x N truth matrix")
     paths = list_images(images_dir, exclude=[truth_matrix])
     truth = load_truth_matrix(truth_matrix, len(paths))
     if len(query_frames(truth, config.exclusion_frames)) == 0:
@@ -87,6 +98,66 @@ def bench_retrieval(
         }
         write_text_atomic(json_out, json.dumps(payload, indent=2, allow_nan=True) + "\n")
         typer.echo(f"wrote {json_out}", err=True)
+
+
+def _bench_log(path: Path, names: list[str], config, *, radius_m: float, json_out: Optional[Path]) -> None:
+    from lcv_replay.bench.retrieval import bench_log
+    from lcv_replay.errors import ConfigError
+    from lcv_replay.fileio import write_text_atomic
+
+    if not radius_m > 0:
+        raise ConfigError(f"--radius-m {radius_m} must be > 0")
+    reports = []
+    for name in names:
+        typer.echo(f"{name}: describing {path} ...", err=True)
+        reports.append(bench_log(path, name, config, radius_m=radius_m, cache_dir=Path(config.cache_dir) if config.cache_dir else None))
+    header = f"{'backend':20s} {'frames':>6s} {'queries':>7s} {'found':>6s} {'R@1':>6s} {'false':>6s} {'cands':>6s} {'prefilt':>7s} {'describe s':>10s}"
+    lines = [header, "-" * len(header)]
+    for r in reports:
+        lines.append(
+            f"{r.backend:20s} {r.frames:6d} {r.queries:7d} {r.revisits_found:6.3f} {r.recall_at_1:6.3f} "
+            f"{r.false_candidate_fraction:6.3f} {r.candidates:6d} {r.mean_prefilter_size:7.2f} {r.describe_s:10.1f}"
+        )
+    typer.echo("\n".join(lines))
+    typer.echo(f"(found = queries with a true revisit, ground truth < {radius_m:g} m, among their candidates; false = false candidates / all)")
+    if json_out is not None:
+        payload = {"log": str(path), "radius_m": radius_m, "fit": config.fit, "machine": _machine(), "backends": [r.as_dict() for r in reports]}
+        write_text_atomic(json_out, json.dumps(payload, indent=2) + "\n")
+        typer.echo(f"wrote {json_out}", err=True)
+
+
+@bench_app.command("retrieval-index")
+def bench_retrieval_index(
+    sizes: str = typer.Option("1000,10000,100000", "--sizes", help="Library sizes (comma-separated)."),
+    vector_dim: int = typer.Option(1904, "--vector-dim", help="Re-rank vector size (1904 = default descriptor, 128 = PCA)."),
+    queries: int = typer.Option(500, "--queries", help="Queries timed per size."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the rows as JSON."),
+    force: bool = typer.Option(False, "--force", help="Overwrite the JSON file."),
+) -> None:
+    """Per-query time of the Hamming prefilter + L2 re-rank as the library grows (synthetic codes)."""
+    from lcv_replay.bench.retrieval import index_query_times
+    from lcv_replay.errors import ConfigError
+    from lcv_replay.fileio import check_output_path, write_text_atomic
+
+    if json_out is not None:
+        check_output_path(json_out, force=force)
+    try:
+        size_list = [int(x) for x in sizes.split(",") if x.strip()]
+    except ValueError:
+        raise ConfigError(f"--sizes {sizes!r} must be comma-separated integers") from None
+    if not size_list or min(size_list) < 1 or vector_dim < 1 or queries < 1:
+        raise ConfigError("--sizes, --vector-dim and --queries must be positive")
+    rows = index_query_times(size_list, vector_dim=vector_dim, queries=queries)
+    header = f"{'library':>8s} {'strategy':8s} {'query µs':>9s} {'p90 µs':>8s} {'add µs':>7s} {'prefilter':>9s}"
+    lines = [header, "-" * len(header)]
+    for r in rows:
+        lines.append(
+            f"{r['library_frames']:8d} {r['strategy']:8s} {r['query_us_median']:9.1f} {r['query_us_p90']:8.1f} "
+            f"{r['add_us_mean']:7.1f} {r['mean_prefilter_size']:9.1f}"
+        )
+    typer.echo("\n".join(lines))
+    if json_out is not None:
+        write_text_atomic(json_out, json.dumps({"machine": _machine(), "rows": rows}, indent=2) + "\n")
 
 
 @bench_app.command("descriptor-speed")
