@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import platform
+import re
 from pathlib import Path
 from typing import Optional
 
@@ -30,6 +31,9 @@ def bench_retrieval(
     code_bits: Optional[int] = typer.Option(None, "--code-bits", help="N_b (default 20)."),
     pooling: Optional[str] = typer.Option(None, "--pooling", help="efficientnet-lite0 pooling: avg, gem or multi (default multi)."),
     seed: Optional[int] = typer.Option(None, "--seed", help="ITQ seed (default 0)."),
+    precision: Optional[str] = typer.Option(None, "--precision", help="efficientnet-lite0 arithmetic: fp32 (default) or bf16."),
+    torch_compile: Optional[bool] = typer.Option(None, "--torch-compile/--no-torch-compile", help="Run efficientnet-lite0 through torch.compile."),
+    threads: Optional[int] = typer.Option(None, "--threads", help="torch threads (0 = one per core)."),
     timing_runs: int = typer.Option(5, "--timing-runs", help="Timed passes over the images for descriptor speed (median reported)."),
     force: bool = typer.Option(False, "--force", help="Overwrite the JSON file."),
 ) -> None:
@@ -43,7 +47,7 @@ def bench_retrieval(
     from lcv_replay.bench.retrieval import bench_backend, list_images, load_truth_matrix, query_frames, read_image
     from lcv_replay.config import load_config, replace_in
     from lcv_replay.errors import ConfigError, RetrievalError
-    from lcv_replay.fileio import check_output_path, write_text_atomic
+    from lcv_replay.fileio import check_output_path
     from lcv_replay.retrieval.descriptors import available_backends
 
     if json_out is not None:
@@ -52,6 +56,10 @@ def bench_retrieval(
         raise ConfigError(f"--timing-runs {timing_runs} must be >= 0")
     if fit is not None and fit not in ("online", "whole-log"):
         raise ConfigError(f"--fit {fit!r} is not known", fix="use 'online' or 'whole-log'")
+    if precision is not None and precision not in ("fp32", "bf16"):
+        raise ConfigError(f"--precision {precision!r} is not known", fix="use 'fp32' or 'bf16'")
+    if pooling is not None and pooling not in ("avg", "gem", "multi"):
+        raise ConfigError(f"--pooling {pooling!r} is not known", fix="use 'avg', 'gem' or 'multi'")
     config = replace_in(
         load_config(config_file).retrieval,
         exclusion_frames=exclude_frames,
@@ -61,6 +69,9 @@ def bench_retrieval(
         pooling=pooling,
         seed=seed,
         fit=fit,
+        precision=precision,
+        torch_compile=torch_compile,
+        num_threads=threads,
     )
     names = backend or DEFAULT_BACKENDS
     known = available_backends()
@@ -85,25 +96,19 @@ def bench_retrieval(
     for name in names:
         typer.echo(f"{name}: describing {len(images)} images ...", err=True)
         reports.append(bench_backend(name, images, truth, config, timing_runs=timing_runs))
-    typer.echo(_table(reports, config.top_k))
-    if json_out is not None:
-        payload = {
-            "images_dir": str(images_dir),
-            "truth_matrix": str(truth_matrix),
-            "images": len(images),
-            "exclusion_frames": config.exclusion_frames,
-            "fit": "whole-log",
-            "machine": _machine(),
-            "backends": [r.as_dict() for r in reports],
-        }
-        write_text_atomic(json_out, json.dumps(payload, indent=2, allow_nan=True) + "\n")
-        typer.echo(f"wrote {json_out}", err=True)
+    _report(
+        FOLDER_COLUMNS,
+        [r.as_dict() for r in reports],
+        json_out,
+        {"images_dir": str(images_dir), "truth_matrix": str(truth_matrix), "images": len(images),
+         "exclusion_frames": config.exclusion_frames, "fit": "whole-log"},
+        key="backends",
+    )
 
 
 def _bench_log(path: Path, names: list[str], config, *, radius_m: float, json_out: Optional[Path]) -> None:
     from lcv_replay.bench.retrieval import bench_log
     from lcv_replay.errors import ConfigError
-    from lcv_replay.fileio import write_text_atomic
 
     if not radius_m > 0:
         raise ConfigError(f"--radius-m {radius_m} must be > 0")
@@ -111,19 +116,8 @@ def _bench_log(path: Path, names: list[str], config, *, radius_m: float, json_ou
     for name in names:
         typer.echo(f"{name}: describing {path} ...", err=True)
         reports.append(bench_log(path, name, config, radius_m=radius_m, cache_dir=Path(config.cache_dir) if config.cache_dir else None))
-    header = f"{'backend':20s} {'frames':>6s} {'queries':>7s} {'found':>6s} {'R@1':>6s} {'false':>6s} {'cands':>6s} {'prefilt':>7s} {'describe s':>10s}"
-    lines = [header, "-" * len(header)]
-    for r in reports:
-        lines.append(
-            f"{r.backend:20s} {r.frames:6d} {r.queries:7d} {r.revisits_found:6.3f} {r.recall_at_1:6.3f} "
-            f"{r.false_candidate_fraction:6.3f} {r.candidates:6d} {r.mean_prefilter_size:7.2f} {r.describe_s:10.1f}"
-        )
-    typer.echo("\n".join(lines))
     typer.echo(f"(found = queries with a true revisit, ground truth < {radius_m:g} m, among their candidates; false = false candidates / all)")
-    if json_out is not None:
-        payload = {"log": str(path), "radius_m": radius_m, "fit": config.fit, "machine": _machine(), "backends": [r.as_dict() for r in reports]}
-        write_text_atomic(json_out, json.dumps(payload, indent=2) + "\n")
-        typer.echo(f"wrote {json_out}", err=True)
+    _report(LOG_COLUMNS, [r.as_dict() for r in reports], json_out, {"log": str(path), "radius_m": radius_m, "fit": config.fit}, key="backends")
 
 
 @bench_app.command("retrieval-index")
@@ -137,7 +131,7 @@ def bench_retrieval_index(
     """Per-query time of the Hamming prefilter + L2 re-rank as the library grows (synthetic codes)."""
     from lcv_replay.bench.retrieval import index_query_times
     from lcv_replay.errors import ConfigError
-    from lcv_replay.fileio import check_output_path, write_text_atomic
+    from lcv_replay.fileio import check_output_path
 
     if json_out is not None:
         check_output_path(json_out, force=force)
@@ -148,16 +142,7 @@ def bench_retrieval_index(
     if not size_list or min(size_list) < 1 or vector_dim < 1 or queries < 1:
         raise ConfigError("--sizes, --vector-dim and --queries must be positive")
     rows = index_query_times(size_list, vector_dim=vector_dim, queries=queries)
-    header = f"{'library':>8s} {'strategy':8s} {'query µs':>9s} {'p90 µs':>8s} {'add µs':>7s} {'prefilter':>9s}"
-    lines = [header, "-" * len(header)]
-    for r in rows:
-        lines.append(
-            f"{r['library_frames']:8d} {r['strategy']:8s} {r['query_us_median']:9.1f} {r['query_us_p90']:8.1f} "
-            f"{r['add_us_mean']:7.1f} {r['mean_prefilter_size']:9.1f}"
-        )
-    typer.echo("\n".join(lines))
-    if json_out is not None:
-        write_text_atomic(json_out, json.dumps({"machine": _machine(), "rows": rows}, indent=2) + "\n")
+    _report(INDEX_COLUMNS, rows, json_out, {}, key="rows")
 
 
 @bench_app.command("descriptor-speed")
@@ -174,7 +159,7 @@ def bench_descriptor_speed(
     """EfficientNet-Lite0 ms/image for each optimisation step (untuned eager ... folded + channels_last ...)."""
     from lcv_replay.bench.descriptor_speed import VARIANTS, speed_ladder
     from lcv_replay.errors import ConfigError
-    from lcv_replay.fileio import check_output_path, write_text_atomic
+    from lcv_replay.fileio import check_output_path
 
     if json_out is not None:
         check_output_path(json_out, force=force)
@@ -185,35 +170,55 @@ def bench_descriptor_speed(
     if batch < 1 or runs < 1 or repeats < 1 or size % 32 or size < 32:
         raise ConfigError("--batch, --runs and --repeats must be >= 1 and --size a multiple of 32")
     rows = speed_ladder(names, batch=batch, runs=runs, size_px=size, repeats=repeats, threads=threads)
-    header = f"{'variant':26s} {'ms/img':>8s} {'min':>7s} {'img/s':>7s} {'warm-up s':>9s} {'cos min':>9s} {'max|Δ|':>9s} {'load':>5s}"
-    lines = [header, "-" * len(header)]
-    for r in rows:
-        lines.append(
-            f"{r['variant']:26s} {r['ms_per_image_median']:8.2f} {r['ms_per_image_min']:7.2f} {r['frames_per_s_median']:7.1f} "
-            f"{r['warmup_s_median']:9.1f} {r['cosine_min']:9.6f} {r['max_abs_diff']:9.2e} {r['loadavg_1min_median']:5.1f}"
-        )
+    _report(SPEED_COLUMNS, rows, json_out, {}, key="variants")
+
+
+Column = tuple[str, str, str]  # (row key, title, format spec)
+
+FOLDER_COLUMNS: list[Column] = [
+    ("backend", "backend", "20s"), ("dim", "dim", "5d"), ("queries", "queries", "7d"), ("recall_at_1", "R@1", "6.3f"),
+    ("recall_at_10", "R@N_r", "6.3f"), ("candidate_precision", "prec", "6.3f"), ("candidates", "cands", "6d"),
+    ("mean_prefilter_size", "prefilt", "7.2f"), ("exhaustive_recall_at_1", "exh R@1", "7.3f"),
+    ("descriptor_frames_per_s", "img/s", "7.1f"), ("descriptor_warmup_s", "warm-up s", "9.2f"),
+]
+LOG_COLUMNS: list[Column] = [
+    ("backend", "backend", "20s"), ("frames", "frames", "6d"), ("queries", "queries", "7d"), ("revisits_found", "found", "6.3f"),
+    ("recall_at_1", "R@1", "6.3f"), ("false_candidate_fraction", "false", "6.3f"), ("candidates", "cands", "6d"),
+    ("mean_prefilter_size", "prefilt", "7.2f"), ("describe_s", "describe s", "10.1f"),
+]
+INDEX_COLUMNS: list[Column] = [
+    ("library_frames", "library", "8d"), ("strategy", "strategy", "8s"), ("query_us_median", "query µs", "9.1f"),
+    ("query_us_p90", "p90 µs", "8.1f"), ("add_us_mean", "add µs", "7.1f"), ("mean_prefilter_size", "prefilter", "9.1f"),
+]
+SPEED_COLUMNS: list[Column] = [
+    ("variant", "variant", "26s"), ("ms_per_image_median", "ms/img", "8.2f"), ("ms_per_image_min", "min", "7.2f"),
+    ("frames_per_s_median", "img/s", "7.1f"), ("warmup_s_median", "warm-up s", "9.1f"), ("cosine_min", "cos min", "9.6f"),
+    ("max_abs_diff", "max|Δ|", "9.2e"), ("loadavg_1min_median", "load", "5.1f"),
+]
+
+
+def _cell(text_or_value, spec: str, *, title: bool = False) -> str:
+    width = int(re.match(r"\d+", spec).group())
+    left = spec.endswith("s")
+    if title or left:
+        text = str(text_or_value)
+    elif isinstance(text_or_value, float) and math.isnan(text_or_value):
+        text = "n/a"
+    else:
+        text = format(text_or_value, spec)
+    return text.ljust(width) if left else text.rjust(width)
+
+
+def _report(columns: list[Column], rows: list[dict], json_out: Optional[Path], meta: dict, *, key: str) -> None:
+    """Print ``rows`` as an aligned table and, with ``json_out``, write ``meta`` + machine + rows."""
+    from lcv_replay.fileio import write_text_atomic
+
+    header = " ".join(_cell(title, spec, title=True) for _, title, spec in columns)
+    lines = [header, "-" * len(header)] + [" ".join(_cell(row[k], spec) for k, _, spec in columns) for row in rows]
     typer.echo("\n".join(lines))
     if json_out is not None:
-        write_text_atomic(json_out, json.dumps({"machine": _machine(), "variants": rows}, indent=2) + "\n")
+        write_text_atomic(json_out, json.dumps({**meta, "machine": _machine(), key: rows}, indent=2) + "\n")
         typer.echo(f"wrote {json_out}", err=True)
-
-
-def _table(reports, top_k: int) -> str:
-    def f(v: float, fmt: str) -> str:
-        return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
-
-    header = (
-        f"{'backend':20s} {'dim':>5s} {'queries':>7s} {'R@1':>6s} {f'R@{top_k}':>6s} {'prec':>6s} {'cands':>6s} "
-        f"{'prefilt':>7s} {'exh R@1':>7s} {'img/s':>7s} {'warm-up s':>9s}"
-    )
-    lines = [header, "-" * len(header)]
-    for r in reports:
-        lines.append(
-            f"{r.backend:20s} {r.dim:5d} {r.queries:7d} {f(r.recall_at_1, '.3f'):>6s} {f(r.recall_at_10, '.3f'):>6s} "
-            f"{f(r.candidate_precision, '.3f'):>6s} {r.candidates:6d} {r.mean_prefilter_size:7.2f} "
-            f"{f(r.exhaustive_recall_at_1, '.3f'):>7s} {f(r.descriptor_frames_per_s, '.1f'):>7s} {r.descriptor_warmup_s:9.2f}"
-        )
-    return "\n".join(lines)
 
 
 def _machine() -> dict:

@@ -26,7 +26,9 @@ class RetrievalConfig:
     # it beat "avg" (head average, 1280-D) and "gem" on rtabmap_corridor (docs in bench/retrieval.py)
     pooling: Literal["avg", "gem", "multi"] = "multi"
     gem_p: float = 3.0  # GeM exponent (pooling "gem" and "multi")
-    num_threads: int = 0  # torch intra-op threads; 0 = one per available core
+    num_threads: int = 0  # torch intra-op threads; 0 = one per available core (use 1 when the verifier shares 2 cores)
+    precision: Literal["fp32", "bf16"] = "fp32"  # bf16 autocast: faster on AVX512-BF16 CPUs, descriptors change (cos ~0.998)
+    torch_compile: bool = False  # torch.compile (inductor, freezing): needs a C++ compiler, first call takes seconds
     tune_allocator: bool = True  # glibc mallopt for torch activations (see retrieval/efficientnet.py)
     # --- descriptor (thumbnail baseline, SeqSLAM-style) ---
     thumbnail_width_px: int = 64

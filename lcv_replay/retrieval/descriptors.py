@@ -243,11 +243,17 @@ class EfficientNetLite0Backend:
         self._torch = enet.import_torch()
         self.pooling = enet.pooling_spec(config.pooling, config.gem_p)
         self.dim = self.pooling.dim
-        self.signature = f"pooling={self.pooling.method},p={self.pooling.gem_p:g},taps={'+'.join(self.pooling.taps)},norm=127/128"
+        self.precision = config.precision
+        self.signature = (
+            f"pooling={self.pooling.method},p={self.pooling.gem_p:g},taps={'+'.join(self.pooling.taps)},norm=127/128,{self.precision}"
+        )
         reference = enet.load_reference_model(self.input_size_px)
         self.model = enet.build_folded_model(reference, taps=self.pooling.taps).to(memory_format=self._torch.channels_last)
+        self.compiled = config.torch_compile
+        if self.compiled:
+            self.model = enet.compile_model(self.model)
         self._adapt = ImageAdapter(self.name, width_px=self.input_size_px, height_px=self.input_size_px, channels=3)
-        self.describe([np.zeros((self.input_size_px, self.input_size_px, 3), np.uint8)] * min(2, self.batch_size))
+        self.describe_prepared(np.zeros((self.batch_size, self.input_size_px, self.input_size_px, 3), np.uint8))
         self.warmup_s = time.perf_counter() - start
 
     def describe(self, images: Sequence[np.ndarray]) -> np.ndarray:
@@ -262,11 +268,19 @@ class EfficientNetLite0Backend:
     def describe_prepared(self, batch: np.ndarray) -> np.ndarray:
         """``(B, S, S, 3)`` uint8 RGB at the input size -> ``(B, D)`` descriptors (one forward pass)."""
         torch = self._torch
+        count = batch.shape[0]
+        if self.compiled and count < self.batch_size:  # one static shape: no recompilation for a short batch
+            batch = np.concatenate([batch, np.zeros((self.batch_size - count, *batch.shape[1:]), batch.dtype)])
         with torch.inference_mode():
             x = torch.from_numpy(np.ascontiguousarray(batch)).permute(0, 3, 1, 2)  # NHWC memory = channels_last
             x = (x.float() - self._enet.INPUT_MEAN) / self._enet.INPUT_STD
-            maps = self.model(x)
-            return self._enet.pool_features(maps, self.pooling).numpy()
+            if self.precision == "bf16":
+                with torch.autocast("cpu", dtype=torch.bfloat16):
+                    maps = self.model(x)
+                maps = tuple(m.float() for m in maps)
+            else:
+                maps = self.model(x)
+            return self._enet.pool_features(maps, self.pooling).numpy()[:count]
 
 
 @register_backend("efficientnet-lite0", help="ImageNet EfficientNet-Lite0 pooled conv features (torch, CPU)")

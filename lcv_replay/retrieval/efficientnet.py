@@ -227,9 +227,21 @@ def build_folded_model(reference, *, taps: Sequence[str] = ("head",), fold_paddi
     return _FOLDED_CLASS(reference, taps=taps, fold_padding=fold_padding).eval()
 
 
-def reference_features(reference, x):
-    """Head feature map of the library's own forward path: ``(B, 1280, h, w)`` (for checks)."""
-    return reference.extract_features(x)
+def compile_model(model):
+    """``torch.compile`` with inductor freezing (weights folded as constants); compiled on first call.
+
+    Raises:
+        RetrievalError: when inductor cannot work here (it needs a C++ compiler).
+    """
+    torch = import_torch()
+    import shutil
+
+    if shutil.which(os.environ.get("CXX", "g++")) is None and shutil.which("c++") is None:
+        raise RetrievalError("retrieval.torch_compile needs a C++ compiler (g++)", fix="install g++ or set torch_compile = false")
+    import torch._inductor.config as inductor_config
+
+    inductor_config.freezing = True
+    return torch.compile(model)
 
 
 # --- CPU runtime tuning -------------------------------------------------------------------------
