@@ -389,10 +389,14 @@ class _Retrieval:
         self._log_path = log_path
 
     def _describe(self, frames: Iterable[Frame]) -> Iterator[tuple[Frame, Any]]:
-        from lcv_replay.retrieval.retriever import describe_frames, log_cache_key
+        from lcv_replay.retrieval.cache import describe_frames, log_cache_key
 
         return describe_frames(
-            frames, self.backend, cache_key=log_cache_key(self._log_path), batch_size=self.config.batch_size
+            frames,
+            self.backend,
+            cache_key=log_cache_key(self._log_path),
+            cache_dir=Path(self.config.cache_dir) if self.config.cache_dir else None,
+            batch_size=self.config.batch_size,
         )
 
     def described(self, frames_factory) -> Iterator[tuple[Frame, Any]]:

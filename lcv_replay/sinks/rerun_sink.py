@@ -15,6 +15,11 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import signal
+import socket
+import subprocess
+import sys
+import time
 import uuid
 from collections import defaultdict
 from dataclasses import dataclass
@@ -126,6 +131,54 @@ def _indexes(rows: Sequence[tuple]) -> list:
     ]
 
 
+def start_web_server(grpc_port: int, web_port: int, memory_limit: str, *, timeout_s: float = 20.0) -> subprocess.Popen:
+    """Start ``rerun --serve-web`` (gRPC proxy + web viewer) bound to 127.0.0.1 only.
+
+    The server runs in its own session, so a Ctrl-C that stops the replay leaves it serving; the
+    sink terminates it when it closes. Raises :class:`OutputError` if it is not listening within
+    ``timeout_s`` (e.g. a port in use).
+    """
+    command = [
+        sys.executable, "-m", "rerun_cli", "--serve-web", "--bind", "127.0.0.1", "--port", str(grpc_port),
+        "--web-viewer-port", str(web_port), "--server-memory-limit", memory_limit,
+    ]
+    server = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if server.poll() is not None:
+            err = (server.stderr.read() or b"").decode(errors="replace").strip().splitlines()
+            raise OutputError(
+                f"the Rerun web server could not start on 127.0.0.1 ports {grpc_port}/{web_port}: "
+                f"{err[-1] if err else 'exited'}",
+                fix="choose free ports with --grpc-port/--web-port",
+            )
+        if all(_listening(port) for port in (grpc_port, web_port)):
+            return server
+        time.sleep(0.1)
+    stop_web_server(server)
+    raise OutputError(
+        f"the Rerun web server did not listen on 127.0.0.1 ports {grpc_port}/{web_port} within {timeout_s:g} s",
+        fix="choose free ports with --grpc-port/--web-port",
+    )
+
+
+def stop_web_server(server: subprocess.Popen) -> None:
+    """Terminate the server's whole process group (``python -m rerun`` and the viewer binary)."""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(server.pid, signal.SIGTERM)
+    try:
+        server.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(server.pid, signal.SIGKILL)
+
+
+def _listening(port: int) -> bool:
+    with socket.socket() as s:
+        s.settimeout(0.2)
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
 def web_viewer_url(web_port: int, grpc_uri: str) -> str:
     """The URL that opens the served web viewer connected to the gRPC server."""
     return f"http://127.0.0.1:{web_port}/?url={quote(grpc_uri, safe='')}"
@@ -144,6 +197,7 @@ class RerunSink(BaseSink):
         self.served_url: str | None = None
         self._recording_id = recording_id or uuid.uuid4().hex
         self._rec: rr.RecordingStream | None = None
+        self._server: subprocess.Popen | None = None  # `rerun --serve-web` for --serve
         self._tmp_path: Path | None = None
         self._finished = False
         self._columns = _Columns()
@@ -185,13 +239,12 @@ class RerunSink(BaseSink):
         if self.outputs.connect is not None:
             sinks.append(rr.GrpcSink(self.outputs.connect))
         if self.outputs.serve:
-            server = rr.GrpcServerSink(bind_ip="127.0.0.1", port=self.outputs.grpc_port, server_memory_limit=memory_limit)
-            sinks.append(server)
+            self._server = start_web_server(self.outputs.grpc_port, self.outputs.web_port, memory_limit)
+            grpc_url = f"rerun+http://127.0.0.1:{self.outputs.grpc_port}/proxy"
+            sinks.append(rr.GrpcSink(grpc_url))
+            self.served_url = web_viewer_url(self.outputs.web_port, grpc_url)
         blueprint = bp.default_blueprint(has_images=start.has_images, has_retrieval=start.code_bits is not None)
         rec.set_sinks(*sinks, default_blueprint=blueprint)
-        if self.outputs.serve:
-            rr.serve_web_viewer(web_port=self.outputs.web_port, open_browser=False, connect_to=server.uri)
-            self.served_url = web_viewer_url(self.outputs.web_port, server.uri)
         self._rec = rec
         rec.send_recording_name(f"{start.log_path.name} · {start.method}")
         rec.send_recording_start_time_nanos(int(start.start_ns))
@@ -389,7 +442,7 @@ class RerunSink(BaseSink):
         consistency = np.asarray(step.consistency)
         if consistency.ndim == 2 and consistency.size:
             rows = consistency_rows(consistency.shape, min_rows=top_k, max_cells=CONSISTENCY_MAX_CELLS)
-            rec.log(bp.HYPOTHESES_CONSISTENCY, rr.Tensor(consistency[:rows].astype(np.uint8), dim_names=("hypothesis_rank", "constraint_id")))
+            rec.log(bp.HYPOTHESES_CONSISTENCY, rr.Tensor(consistency[:rows].astype(np.uint8), dim_names=("hypothesis_rank", "constraint_id"), value_range=(0.0, 1.0)))
         self._log_tree(update)
         rec.log(bp.HYPOTHESES_SEQUENCES, rr.TextDocument(hypotheses_markdown(ranking, constraints, top=top_k), media_type=rr.MediaType.MARKDOWN))
 
@@ -532,6 +585,9 @@ class RerunSink(BaseSink):
         finally:
             rec.disconnect()
             del rec
+            if self._server is not None:
+                stop_web_server(self._server)
+                self._server = None
         if self._tmp_path is None:
             return
         if self._finished:

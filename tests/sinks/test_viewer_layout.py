@@ -1,0 +1,94 @@
+"""The default blueprint in a real (headless) Rerun viewer: every view healthy, a screenshot taken.
+
+Needs a Vulkan adapter: a GPU, or Mesa's software rasterizer lavapipe (Debian:
+``apt-get install mesa-vulkan-drivers``). Skipped with that reason when none is present. Set
+``LCV_SCREENSHOT_DIR`` to keep the PNG.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import shutil
+import socket
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lcv_replay.config import load_config
+from lcv_replay.replay import ReplayOptions, replay
+from lcv_replay.sinks.rerun_sink import RerunOutputs, RerunSink
+from tests.replay.helpers import FAST_CONFIG_TOML, record_square_route, write_config
+
+EXPECTED_VIEWS = {
+    "Map (rank-1 hypothesis)",
+    "Hypothesis scores by rank",
+    "Consistency (hypothesis × constraint)",
+    "Precision / recall",
+    "Events",
+    "Top hypotheses",
+    "Generation tree",
+    "Run report",
+}
+
+
+def _vulkan_available() -> bool:
+    return bool(glob.glob("/usr/share/vulkan/icd.d/*.json") or glob.glob("/etc/vulkan/icd.d/*.json"))
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def screenshot(rrd: Path, png: Path, *, frame: int | None = None, timeout_s: float = 60.0):
+    """Open ``rrd`` in a headless viewer, go to ``frame``, save a PNG; returns the viewer state."""
+    from rerun.experimental import ViewerClient
+
+    os.environ.setdefault("WGPU_BACKEND", "vulkan")
+    viewer = ViewerClient.spawn(headless=True, port=_free_port(), hide_welcome_screen=True, memory_limit="2GB")
+    try:
+        viewer.open(str(rrd))
+        deadline = time.monotonic() + timeout_s
+        state = viewer.get_state()
+        while (state.loading or not state.recordings) and time.monotonic() < deadline:
+            time.sleep(0.5)
+            state = viewer.get_state()
+        if frame is not None:
+            viewer.set_time("frame", sequence=frame, play_state="paused")
+        time.sleep(2.0)  # let every view paint once
+        png.write_bytes(viewer.take_screenshot())
+        return viewer.get_state()
+    finally:
+        viewer.quit()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("rerun") is None, reason="the rerun viewer executable (rerun-sdk) is not on PATH")
+@pytest.mark.skipif(not _vulkan_available(), reason="no Vulkan adapter for a headless viewer (apt-get install mesa-vulkan-drivers)")
+def test_default_layout_in_a_headless_viewer(tmp_path):
+    import cv2
+
+    log, route = record_square_route(tmp_path)
+    config = load_config(write_config(tmp_path / "fast.toml", FAST_CONFIG_TOML))
+    rrd = tmp_path / "layout.rrd"
+    replay(ReplayOptions(log_path=log, config=config, seed=1), [RerunSink(config.rerun, RerunOutputs(save=rrd))], handle_sigint=False)
+    png = Path(os.environ.get("LCV_SCREENSHOT_DIR", tmp_path)) / "layout.png"
+    try:
+        state = screenshot(rrd, png, frame=route.frames - 1)
+    except Exception as exc:  # no adapter after all, viewer crash: say so rather than fail obscurely
+        pytest.skip(f"headless viewer unavailable here: {exc}")
+    names = {view.name for view in state.views}
+    assert EXPECTED_VIEWS <= names, names
+    broken = {view.name: [r.summary for r in view.reports] for view in state.views if view.visible and view.reports}
+    assert not broken, broken
+    image = cv2.imread(str(png))
+    assert image is not None and image.shape[0] >= 600 and image.shape[1] >= 800
+    # The map (left third) draws trajectories and constraints: many non-background pixels.
+    left = image[100 : image.shape[0] - 100, 50 : image.shape[1] // 3]
+    background = np.median(left.reshape(-1, 3), axis=0)
+    drawn = np.mean(np.abs(left.astype(int) - background).sum(axis=2) > 60)
+    assert drawn > 0.005, drawn
