@@ -35,6 +35,33 @@ class BaselineConfig:
 
 
 @dataclass(frozen=True)
+class IlvPlusConfig:
+    """Parameters of ``ilv+`` (lcv_replay.verification.ilv), the improved verifier; not in the paper.
+
+    ``ilv+`` keeps the paper's incremental multi-hypothesis structure and replaces its 10 m test by
+    a Mahalanobis test under the uncertainty of each hypothesis' pose graph, drops constraints too
+    short in time to be loop closures, and refines each drawn hypothesis to its consensus set.
+    """
+
+    gate_chi2: float = 16.27  # Mahalanobis gate, chi2(3 dof) quantile 0.999
+    min_loop_gap_frames: int = 200  # Δt of sec. II-B: a candidate closer in time is no loop closure
+    closure_rounds: int = 2  # consensus refinement rounds per drawn hypothesis (0 = the paper's child)
+    max_covariance_loops: int = 24  # loops (evenly spread in time) conditioning the covariance; bounds the cost
+    iterations_per_window: int = 10  # like the paper's schedule (sec. II-D) unless tuned down
+    hypotheses_per_iteration: int = 10
+
+    def __post_init__(self) -> None:
+        from lcv_replay.config import require
+
+        require(self.gate_chi2 > 0, "verification.ilv_plus.gate_chi2", self.gate_chi2, "a number > 0")
+        require(self.min_loop_gap_frames >= 0, "verification.ilv_plus.min_loop_gap_frames", self.min_loop_gap_frames, "an integer >= 0")
+        require(self.closure_rounds >= 0, "verification.ilv_plus.closure_rounds", self.closure_rounds, "an integer >= 0")
+        require(self.max_covariance_loops >= 1, "verification.ilv_plus.max_covariance_loops", self.max_covariance_loops, "an integer >= 1")
+        require(self.iterations_per_window >= 1, "verification.ilv_plus.iterations_per_window", self.iterations_per_window, "an integer >= 1")
+        require(self.hypotheses_per_iteration >= 1, "verification.ilv_plus.hypotheses_per_iteration", self.hypotheses_per_iteration, "an integer >= 1")
+
+
+@dataclass(frozen=True)
 class VerificationConfig:
     """Multi-model hypothesize-and-verify (method ``ilv``) and its improved variant ``ilv+``."""
 
@@ -48,6 +75,9 @@ class VerificationConfig:
     # Pose-graph noise where the input carries none (not in the paper; g2o logs carry both):
     odometry_sigmas: tuple[float, float, float] = (0.05, 0.05, 0.002)  # per-frame odometry sigma [m, m, rad], ~libviso2 at 10 Hz
     loop_sigmas: tuple[float, float, float] = (2.0, 2.0, 0.2)  # identity "same place" loop [m, m, rad]: same place, not same pose (sec. II-A)
+    top_k_trajectories: int = 3  # trajectories of the top-ranked hypotheses carried by each step (for sinks)
+    max_iterations: int = 100  # Levenberg-Marquardt iteration cap per hypothesis
+    ilv_plus: IlvPlusConfig = field(default_factory=IlvPlusConfig)  # the improved verifier
     baselines: BaselineConfig = field(default_factory=BaselineConfig)  # baseline verifiers
 
     def __post_init__(self) -> None:
@@ -58,6 +88,8 @@ class VerificationConfig:
         require(self.iterations_per_window >= 1, "verification.iterations_per_window", self.iterations_per_window, "an integer >= 1")
         require(self.hypotheses_per_iteration >= 1, "verification.hypotheses_per_iteration", self.hypotheses_per_iteration, "an integer >= 1")
         require(self.max_hypotheses >= self.hypotheses_per_iteration, "verification.max_hypotheses", self.max_hypotheses, "an integer >= hypotheses_per_iteration")
+        require(self.top_k_trajectories >= 1, "verification.top_k_trajectories", self.top_k_trajectories, "an integer >= 1")
+        require(self.max_iterations >= 1, "verification.max_iterations", self.max_iterations, "an integer >= 1")
         require(all(s > 0 for s in self.odometry_sigmas), "verification.odometry_sigmas", self.odometry_sigmas, "three numbers > 0 [m, m, rad]")
         require(all(s > 0 for s in self.loop_sigmas), "verification.loop_sigmas", self.loop_sigmas, "three numbers > 0 [m, m, rad]")
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal, Sequence
+from typing import TYPE_CHECKING, Literal, NamedTuple, Sequence
 
 import numpy as np
 
@@ -159,6 +159,44 @@ def se2_logmap(pose: np.ndarray) -> np.ndarray:
     return out
 
 
+def se2_expmap(xi: np.ndarray) -> np.ndarray:
+    """``Pose2.Expmap`` of ``(..., 3)`` tangent vectors ``[v_x, v_y, ω]`` -> poses ``(..., 3)``."""
+    xi = np.asarray(xi, dtype=np.float64)
+    w = xi[..., 2]
+    small = np.abs(w) < 1e-6
+    safe_w = np.where(small, 1.0, w)
+    a = np.where(small, 1.0 - w * w / 6.0, np.sin(safe_w) / safe_w)  # sin(w)/w
+    b = np.where(small, 0.5 * w, (1.0 - np.cos(safe_w)) / safe_w)  # (1-cos(w))/w
+    out = np.empty(xi.shape, dtype=np.float64)
+    out[..., 0] = a * xi[..., 0] - b * xi[..., 1]
+    out[..., 1] = b * xi[..., 0] + a * xi[..., 1]
+    out[..., 2] = wrap_angles(w)
+    return out
+
+
+def se2_adjoint(poses: np.ndarray) -> np.ndarray:
+    """``Pose2.AdjointMap`` of ``(..., 3)`` poses -> ``(..., 3, 3)``: ``T Exp(ξ) = Exp(Ad(T) ξ) T``."""
+    poses = np.asarray(poses, dtype=np.float64)
+    c, s = np.cos(poses[..., 2]), np.sin(poses[..., 2])
+    ad = np.zeros(poses.shape[:-1] + (3, 3), dtype=np.float64)
+    ad[..., 0, 0], ad[..., 0, 1], ad[..., 0, 2] = c, -s, poses[..., 1]
+    ad[..., 1, 0], ad[..., 1, 1], ad[..., 1, 2] = s, c, -poses[..., 0]
+    ad[..., 2, 2] = 1.0
+    return ad
+
+
+def se2_adjoint_inverse(poses: np.ndarray) -> np.ndarray:
+    """``Ad(T)⁻¹ = Ad(T⁻¹)`` for ``(..., 3)`` poses -> ``(..., 3, 3)``."""
+    poses = np.asarray(poses, dtype=np.float64)
+    c, s = np.cos(poses[..., 2]), np.sin(poses[..., 2])
+    x, y = poses[..., 0], poses[..., 1]
+    ad = np.zeros(poses.shape[:-1] + (3, 3), dtype=np.float64)
+    ad[..., 0, 0], ad[..., 0, 1], ad[..., 0, 2] = c, s, s * x - c * y
+    ad[..., 1, 0], ad[..., 1, 1], ad[..., 1, 2] = -s, c, c * x + s * y
+    ad[..., 2, 2] = 1.0
+    return ad
+
+
 # ----------------------------------------------------------------------------------------------
 # Measurements and noise
 # ----------------------------------------------------------------------------------------------
@@ -283,6 +321,141 @@ def extend_by_odometry(poses: np.ndarray, odom_poses: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------------
+# The odometry chain as a random walk: O(1) covariance of any segment, Brownian-bridge interpolation
+# ----------------------------------------------------------------------------------------------
+
+
+class OdometryChain:
+    """A growing cumulative odometry ``O_0..O_{N-1}`` with its first-order uncertainty model.
+
+    Model (linearised at the odometry): the pose of frame k is ``x_k = Exp(ξ_k) O_k`` with ``ξ``
+    a world-frame left perturbation; each step adds its noise ``ε_k ~ N(0, Σ)`` (right
+    perturbation, GTSAM's ``BetweenFactor`` convention), so ``ξ_{k+1} = ξ_k + Ad(O_{k+1}) ε_k``
+    is a random walk with ``ξ_0 = 0`` (the prior) and ``Cov(ξ_a, ξ_b) = S[min(a, b)]`` where
+    ``S[k] = Σ_{j<k} Ad(O_{j+1}) Σ Ad(O_{j+1})ᵀ``. The prefix sums ``S`` make the covariance of
+    any segment, and of any pair of loop residuals, O(1).
+
+    Args:
+        odom_information: ``(3, 3)`` information of one odometry step.
+    """
+
+    def __init__(self, odom_information: np.ndarray):
+        self.information = as_information_matrix(odom_information, what="odometry")
+        self.step_covariance = np.linalg.inv(self.information)
+        self._poses = np.zeros((0, 3))
+        self._prefix = np.zeros((0, 3, 3))
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def poses(self) -> np.ndarray:
+        """``(N, 3)`` cumulative odometry (a read-only view)."""
+        view = self._poses[: self._n]
+        view.flags.writeable = False
+        return view
+
+    @property
+    def prefix(self) -> np.ndarray:
+        """``(N, 3, 3)`` ``S[k] = Cov(ξ_k)`` (a read-only view)."""
+        view = self._prefix[: self._n]
+        view.flags.writeable = False
+        return view
+
+    def extend(self, poses: np.ndarray) -> None:
+        """Append ``(K, 3)`` cumulative odometry poses (amortised O(K))."""
+        poses = _check_poses(poses, "poses")
+        k = len(poses)
+        if k == 0:
+            return
+        if self._n + k > len(self._poses):
+            capacity = max(2 * len(self._poses), self._n + k, 64)
+            self._poses = _grow(self._poses, capacity)
+            self._prefix = _grow(self._prefix, capacity)
+        self._poses[self._n : self._n + k] = poses
+        ad = se2_adjoint(poses)
+        q = ad @ self.step_covariance @ np.swapaxes(ad, -1, -2)
+        if self._n == 0:
+            q[0] = 0.0  # frame 0 is fixed by the prior
+            base = np.zeros((3, 3))
+        else:
+            base = self._prefix[self._n - 1]
+        self._prefix[self._n : self._n + k] = base + np.cumsum(q, axis=0)
+        self._n += k
+
+    def segment_covariance(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Covariance of the composed odometry ``O_a⁻¹ O_b`` (right perturbation at ``b``, the
+        convention of GTSAM's ``BetweenFactor``): ``Ad(O_b)⁻¹ (S[b] - S[a]) Ad(O_b)⁻ᵀ``.
+
+        Args:
+            a, b: ``(K,)`` frame indices with ``a < b``.
+
+        Returns:
+            ``(K, 3, 3)``.
+        """
+        a = np.asarray(a, dtype=np.int64)
+        b = np.asarray(b, dtype=np.int64)
+        inv_ad = se2_adjoint_inverse(self._poses[b])
+        return inv_ad @ (self._prefix[b] - self._prefix[a]) @ np.swapaxes(inv_ad, -1, -2)
+
+    def pair_covariance(self, m1: np.ndarray, q1: np.ndarray, m2: np.ndarray, q2: np.ndarray) -> np.ndarray:
+        """``Cov(ξ_q1 - ξ_m1, ξ_q2 - ξ_m2)`` (world frame) for broadcastable index arrays -> ``(..., 3, 3)``."""
+        S = self._prefix
+        return S[np.minimum(q1, q2)] - S[np.minimum(q1, m2)] - S[np.minimum(m1, q2)] + S[np.minimum(m1, m2)]
+
+    def interpolate(self, node_frames: np.ndarray, node_poses: np.ndarray, frames: np.ndarray) -> np.ndarray:
+        """Poses of ``frames`` given the estimated poses of ``node_frames``.
+
+        Between two nodes ``a < k < b`` the correction to the odometry is the conditional mean of
+        the random walk given both ends (a Brownian bridge, expressed in the frame of ``a``):
+        ``x_k = x_a Exp(ζ_k) O_a⁻¹ O_k`` with ``ζ_k = Ad(O_a)⁻¹ (S[k]-S[a]) (S[b]-S[a])⁻¹ Ad(O_a) ζ_b``
+        and ``ζ_b = Log(x_a⁻¹ x_b (O_a⁻¹ O_b)⁻¹)``. After the last node, frames are extended by
+        odometry (``ζ = 0``). This is the MAP of the full chain given the nodes, to first order.
+
+        Args:
+            node_frames: ``(K,)`` strictly increasing frame indices, ``node_frames[0] == 0``.
+            node_poses: ``(K, 3)`` their estimated poses.
+            frames: ``(F,)`` frame indices in ``0..N-1``.
+
+        Returns:
+            ``(F, 3)`` poses.
+        """
+        node_frames = np.asarray(node_frames, dtype=np.int64)
+        frames = np.asarray(frames, dtype=np.int64)
+        odom = self._poses
+        seg = np.searchsorted(node_frames, frames, side="right") - 1
+        a = node_frames[seg]
+        xa = node_poses[seg]
+        rel = se2_between(odom[a], odom[frames])  # O_a⁻¹ O_k
+        out = se2_compose(xa, rel)  # extension by odometry from node a
+        interior = (seg + 1 < len(node_frames)) & (frames != a)
+        if np.any(interior):
+            s_idx = seg[interior]
+            a_i, b_i, k_i = node_frames[s_idx], node_frames[s_idx + 1], frames[interior]
+            x_a, x_b = node_poses[s_idx], node_poses[s_idx + 1]
+            odo_ab = se2_between(odom[a_i], odom[b_i])
+            zeta_b = se2_logmap(se2_compose(se2_between(x_a, x_b), _se2_inverse(odo_ab)))
+            ad_a = se2_adjoint(odom[a_i])
+            inv_ad_a = se2_adjoint_inverse(odom[a_i])
+            S = self._prefix
+            gain = np.linalg.solve(S[b_i] - S[a_i], (ad_a @ zeta_b[:, :, None]))  # (K, 3, 1)
+            zeta_k = (inv_ad_a @ (S[k_i] - S[a_i]) @ gain)[:, :, 0]
+            out[interior] = se2_compose(se2_compose(x_a, se2_expmap(zeta_k)), rel[interior])
+        return out
+
+
+def _se2_inverse(poses: np.ndarray) -> np.ndarray:
+    return se2_between(poses, np.zeros_like(poses))
+
+
+def _grow(array: np.ndarray, capacity: int) -> np.ndarray:
+    out = np.zeros((capacity,) + array.shape[1:], dtype=array.dtype)
+    out[: len(array)] = array
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
 # Chi-square without a graph (numpy; equals GTSAM's 2 × factor.error for Gaussian factors)
 # ----------------------------------------------------------------------------------------------
 
@@ -375,46 +548,123 @@ def build_graph(
     odom_noise = information_to_noise(odom_information, what="odometry")
     for k, step in enumerate(odometry_between(odom)):
         graph.add(gtsam.BetweenFactorPose2(k, k + 1, gtsam.Pose2(*step), odom_noise))
-    estimator = robust.estimator() if robust is not None else None
     for c in constraints:
         if not (0 <= c.match_frame < n and 0 <= c.query_frame < n):
             raise VerificationError(
                 f"{describe_constraint(c)} references a frame outside 0..{n - 1}",
                 fix="add the frames before the constraints that reference them",
             )
-        measured, omega = loop_measurement(c, loop_default_information)
-        noise = gtsam.noiseModel.Gaussian.Information(omega)
-        if estimator is not None:
-            noise = gtsam.noiseModel.Robust.Create(estimator, noise)
-        graph.add(gtsam.BetweenFactorPose2(c.match_frame, c.query_frame, gtsam.Pose2(*measured), noise))
+    add_loop_factors(graph, [loop_factor(c, loop_default_information) for c in constraints], robust=robust)
     return graph
 
 
-def initial_values(poses: np.ndarray):
-    """``gtsam.Values`` with ``Pose2`` key ``k`` = ``poses[k]`` for an ``(N, 3)`` array."""
+def add_loop_factors(graph, loops: Sequence["LoopFactor"], *, robust: RobustKernel | None = None) -> None:
+    """Append ``BetweenFactorPose2(match, query, measured)`` for each loop to ``graph`` (in order)."""
+    import gtsam
+
+    estimator = robust.estimator() if robust is not None else None
+    for loop in loops:
+        noise = gtsam.noiseModel.Gaussian.Information(loop.information)
+        if estimator is not None:
+            noise = gtsam.noiseModel.Robust.Create(estimator, noise)
+        graph.add(gtsam.BetweenFactorPose2(int(loop.match_frame), int(loop.query_frame), gtsam.Pose2(*loop.measured), noise))
+
+
+class LoopFactor(NamedTuple):
+    """A loop factor ready for a graph: ``BetweenFactorPose2(match_frame, query_frame, measured)``.
+
+    ``measured`` is ``(3,)`` ``T_match_query``; ``information`` is ``(3, 3)``.
+    """
+
+    match_frame: int
+    query_frame: int
+    measured: np.ndarray
+    information: np.ndarray
+
+
+def loop_factor(constraint: "Constraint", default_information: np.ndarray) -> LoopFactor:
+    """The :class:`LoopFactor` of a constraint (see :func:`loop_measurement`)."""
+    measured, omega = loop_measurement(constraint, default_information)
+    return LoopFactor(constraint.match_frame, constraint.query_frame, np.asarray(measured, dtype=np.float64), omega)
+
+
+def build_reduced_graph(chain: OdometryChain, node_frames: np.ndarray, loops: Sequence[LoopFactor]):
+    """Pose graph on ``node_frames`` only: the odometry between consecutive nodes is composed
+    into one factor (exact measurement ``O_a⁻¹ O_b``, covariance from
+    :meth:`OdometryChain.segment_covariance`, first order), plus the loops.
+
+    Solving it gives the poses of the nodes; :meth:`OdometryChain.interpolate` gives the other
+    frames. With the nodes at the loop endpoints this is the full graph's solution to first order,
+    at a cost that depends on the number of loops, not of frames.
+
+    Args:
+        chain: the odometry.
+        node_frames: ``(K,)`` strictly increasing, ``node_frames[0] == 0``, containing every
+            endpoint of ``loops``.
+        loops: loop factors.
+
+    Returns:
+        ``gtsam.NonlinearFactorGraph``: prior on frame 0, ``K - 1`` chain factors, then the loops.
+    """
+    import gtsam
+
+    node_frames = np.asarray(node_frames, dtype=np.int64)
+    if len(node_frames) == 0 or node_frames[0] != 0 or np.any(np.diff(node_frames) <= 0) or node_frames[-1] >= len(chain):
+        raise VerificationError(f"reduced graph nodes must be increasing frames from 0 to < {len(chain)}")
+    odom = chain.poses
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*odom[0]), gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)))
+    a, b = node_frames[:-1], node_frames[1:]
+    if len(a):
+        steps = se2_between(odom[a], odom[b])
+        covariances = chain.segment_covariance(a, b)
+        for k in range(len(a)):
+            noise = gtsam.noiseModel.Gaussian.Covariance(0.5 * (covariances[k] + covariances[k].T))
+            graph.add(gtsam.BetweenFactorPose2(int(a[k]), int(b[k]), gtsam.Pose2(*steps[k]), noise))
+    nodes = set(node_frames.tolist())
+    for loop in loops:
+        if loop.match_frame not in nodes or loop.query_frame not in nodes:
+            raise VerificationError(f"loop ({loop.query_frame}, {loop.match_frame}) has an endpoint that is not a node")
+    add_loop_factors(graph, loops)
+    return graph
+
+
+def initial_values(poses: np.ndarray, keys: Sequence[int] | None = None):
+    """``gtsam.Values`` with ``Pose2`` key ``keys[i]`` (default ``i``) = ``poses[i]`` for ``(N, 3)`` poses."""
     import gtsam
 
     poses = _check_poses(poses, "poses")
+    keys = range(len(poses)) if keys is None else [int(k) for k in keys]
     values = gtsam.Values()
-    for k, (x, y, yaw) in enumerate(poses.tolist()):
+    for k, (x, y, yaw) in zip(keys, poses.tolist()):
         values.insert(k, gtsam.Pose2(x, y, yaw))
     return values
 
 
 def values_to_poses(values, num_frames: int) -> np.ndarray:
-    """``(N, 3)`` array of the ``Pose2`` values with keys ``0..N-1``."""
+    """``(N, 3)`` array of the ``N`` ``Pose2`` values, in increasing key order."""
     import gtsam
 
     if num_frames == 0:
         return np.zeros((0, 3))
-    poses = gtsam.utilities.extractPose2(values)
-    if poses.shape[0] != num_frames:  # pragma: no cover - extractPose2 returns all Pose2s in key order
-        poses = np.array([[p.x(), p.y(), p.theta()] for p in (values.atPose2(k) for k in range(num_frames))])
-    return np.asarray(poses, dtype=np.float64)
+    poses = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64)
+    if poses.shape != (num_frames, 3):
+        raise OptimisationFailed(f"expected {num_frames} Pose2 values, GTSAM returned {poses.shape[0]}")
+    return poses
 
 
-def optimise_lm(graph, initial: np.ndarray, *, max_iterations: int = 100, relative_error_tol: float = 1e-5) -> PoseGraphSolution:
+def optimise_lm(
+    graph,
+    initial: np.ndarray,
+    *,
+    keys: Sequence[int] | None = None,
+    max_iterations: int = 100,
+    relative_error_tol: float = 1e-5,
+) -> PoseGraphSolution:
     """Levenberg-Marquardt from ``initial`` (``(N, 3)``, e.g. the parent hypothesis' estimate).
+
+    ``keys`` are the graph keys of the rows of ``initial`` (increasing; default ``0..N-1``); the
+    solution's poses are in the same order.
 
     GTSAM's LM damps an indeterminant system instead of throwing; a GTSAM exception or a
     non-finite solution (overflowing information, NaN start) is reported as a failure.
@@ -428,7 +678,7 @@ def optimise_lm(graph, initial: np.ndarray, *, max_iterations: int = 100, relati
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(int(max_iterations))
     params.setRelativeErrorTol(float(relative_error_tol))
-    values = initial_values(initial)
+    values = initial_values(initial, keys)
     try:
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
         result = optimizer.optimize()

@@ -161,3 +161,48 @@ def test_optimiser_failure_is_reported_not_returned():
     graph.add(gtsam.BetweenFactorPose2(30, 31, gtsam.Pose2(1.0, 0.0, 0.0), gtsam.noiseModel.Unit.Create(3)))
     with pytest.raises(pg.OptimisationFailed, match="Levenberg-Marquardt failed"):
         pg.optimise_lm(graph, unknown)  # key 31 has no initial value
+
+
+def test_expmap_and_adjoint_match_gtsam():
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        xi = rng.normal(size=3) * [3.0, 3.0, 1.0]
+        T = rng.normal(size=3) * [30.0, 30.0, 1.0]
+        e = gtsam.Pose2.Expmap(xi)
+        np.testing.assert_allclose(pg.se2_expmap(xi), [e.x(), e.y(), e.theta()], atol=1e-9)
+        np.testing.assert_allclose(pg.se2_adjoint(T), gtsam.Pose2(*T).AdjointMap(), atol=1e-12)
+        np.testing.assert_allclose(pg.se2_adjoint_inverse(T) @ pg.se2_adjoint(T), np.eye(3), atol=1e-9)
+        np.testing.assert_allclose(pg.se2_logmap(pg.se2_expmap(xi)), xi, atol=1e-9)
+
+
+def test_chain_segment_covariance_equals_gtsam_marginals():
+    world = circle_world(frames_per_lap=60, laps=1.0)
+    chain = pg.OdometryChain(ODOM_INFORMATION)
+    chain.extend(world.odom[:25])  # grows in pieces like a replay
+    chain.extend(world.odom[25:])
+    graph = pg.build_graph(world.odom, ODOM_INFORMATION, [], loop_default_information=ODOM_INFORMATION)
+    marginals = gtsam.Marginals(graph, pg.initial_values(world.odom))
+    for a, b in [(0, 59), (10, 40), (33, 34)]:
+        joint = marginals.jointMarginalCovariance(gtsam.KeyVector([a, b])).fullMatrix()
+        rel = gtsam.Pose2(*world.odom[a]).between(gtsam.Pose2(*world.odom[b]))
+        jac = np.hstack([-rel.inverse().AdjointMap(), np.eye(3)])  # d(x_a⁻¹ x_b), right perturbation at b
+        np.testing.assert_allclose(chain.segment_covariance(np.array([a]), np.array([b]))[0], jac @ joint @ jac.T, rtol=1e-6, atol=1e-12)
+
+
+def test_reduced_graph_and_bridge_match_the_full_graph():
+    world = circle_world(num_false=0)
+    cons = as_constraints(world.true_candidates)
+    full = pg.optimise_lm(pg.build_graph(world.odom, ODOM_INFORMATION, cons, loop_default_information=ODOM_INFORMATION), world.odom)
+    chain = pg.OdometryChain(ODOM_INFORMATION)
+    chain.extend(world.odom)
+    loops = [pg.loop_factor(c, ODOM_INFORMATION) for c in cons]
+    nodes = np.unique(np.concatenate([[0], [c.match_frame for c in cons], [c.query_frame for c in cons]]))
+    graph = pg.build_reduced_graph(chain, nodes, loops)
+    assert graph.size() == len(nodes) + len(loops)
+    reduced = pg.optimise_lm(graph, world.odom[nodes], keys=nodes)
+    interpolated = chain.interpolate(nodes, reduced.poses, np.arange(len(world.odom)))
+    np.testing.assert_allclose(interpolated[nodes], reduced.poses, atol=1e-9)
+    assert np.abs(interpolated[:, :2] - full.poses[:, :2]).max() < 0.05  # first order: cm on a 60 m circle
+    assert _ate(interpolated, world.truth) < 0.25 * _ate(world.odom, world.truth)
+    with pytest.raises(VerificationError, match="not a node"):
+        pg.build_reduced_graph(chain, nodes[nodes != nodes[3]], loops)

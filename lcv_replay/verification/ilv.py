@@ -1,0 +1,341 @@
+"""``ilv`` (the paper's method) and ``ilv+`` (the improved verifier), registered as methods.
+
+``ilv`` — Tanaka, "Multi-Model Hypothesize-and-Verify Approach for Incremental Loop Closure
+Verification", SII 2016, as the paper defines it:
+
+* a hypothesis is the GTSAM Levenberg-Marquardt solution of the **full** pose graph (every frame,
+  ``Pose2`` / ``BetweenFactorPose2``) of the odometry plus its constraints, warm-started from its
+  parent's estimate; later frames extend it by odometry;
+* a constraint ``(t, t')`` is consistent with it when ``||p(t) - p(t')|| < T_p`` (10 m, II-A);
+* score = number of consistent constraints in the whole history; ranking by score (ties: older);
+* sequential selection, windows of 500 frames, 10 × 10 children per window, at most 200 kept
+  (:mod:`~.incremental`); accepted = the constraints consistent with the rank-1 hypothesis.
+
+``ilv+`` keeps that structure and changes what the paper leaves weak:
+
+1. **Mahalanobis consistency under the hypothesis' own uncertainty** instead of a fixed 10 m
+   radius. The odometry is a random walk whose segment covariances come from prefix sums
+   (:class:`~.pose_graph.OdometryChain`); a hypothesis' loops condition it (a Gaussian-process
+   update), so the test is tight where the hypothesis has closed loops and loose after a long
+   open traverse. A constraint outside the hypothesis is tested by its innovation
+   ``rᵀ (R + Σ_pred)⁻¹ r``; a constraint inside it by its leave-one-out innovation, so a false
+   loop inside a hypothesis is not "consistent" just because the optimiser bent the odometry to
+   satisfy it. Both use the nonlinear residual at the hypothesis' solution and the chi-square gate
+   ``gate_chi2`` (3 dof, 0.999).
+2. **Consensus refinement of each drawn hypothesis** (``closure_rounds``): after the child is
+   solved, its members that fail the leave-one-out test are removed and the non-members that pass
+   are added, and it is solved again. A hypothesis thus becomes a self-consistent consensus set,
+   and a group of mutually consistent false loops must beat the true loops on their own graph, where
+   the bent odometry shows in every other constraint's innovation.
+3. **A reduced pose graph**: nodes are frame 0 and the loop endpoints only, the odometry between
+   them composed exactly with its covariance (first order); the other frames are the Brownian-
+   bridge interpolation. The cost of a hypothesis depends on its loops, not on the log length.
+4. Constraints shorter in time than ``min_loop_gap_frames`` (the paper's Δt = 200 of II-B) are
+   never drawn or accepted.
+
+The reported trajectory of ``ilv+`` is the reduced-graph solution of its accepted set.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import numpy as np
+
+from lcv_replay.verification import pose_graph
+from lcv_replay.verification.base import Constraint
+from lcv_replay.verification.baselines import ConstraintHistory
+from lcv_replay.verification.config import VerificationConfig
+from lcv_replay.verification.consistency import mahalanobis_d2, position_consistent
+from lcv_replay.verification.hypotheses import Hypothesis
+from lcv_replay.verification.incremental import IncrementalVerifier
+from lcv_replay.verification.pose_graph import OdometryChain
+from lcv_replay.verification.registry import register
+
+
+# ----------------------------------------------------------------------------------------------
+# ilv: the paper
+# ----------------------------------------------------------------------------------------------
+
+
+class PaperModel:
+    """``ilv``: full-graph GTSAM hypotheses, the 10 m position test, score = consistent count."""
+
+    def __init__(self, chain: OdometryChain, history: ConstraintHistory, config: VerificationConfig):
+        self.chain = chain
+        self.history = history
+        self.config = config
+        self._base_graph = None
+        self._base_frames = -1
+
+    def eligible(self, constraints: Sequence[Constraint]) -> np.ndarray:
+        return np.ones(len(constraints), dtype=bool)
+
+    def _odometry_graph(self):
+        import gtsam
+
+        n = len(self.chain)
+        if self._base_frames != n:
+            self._base_graph = pose_graph.build_graph(
+                self.chain.poses, self.chain.information, (), loop_default_information=self.history.loop_default_information
+            )
+            self._base_frames = n
+        return gtsam.NonlinearFactorGraph(self._base_graph)
+
+    def solve(self, parent: Hypothesis, constraint_ids: tuple[int, ...], *, hypothesis_id: int, window: int, added: int) -> Hypothesis:
+        graph = self._odometry_graph()
+        loops = [pose_graph.loop_factor(self.history.constraints[c], self.history.loop_default_information) for c in constraint_ids]
+        pose_graph.add_loop_factors(graph, loops)
+        initial = parent.trajectory(self.chain)
+        solution = pose_graph.optimise_lm(graph, initial, max_iterations=self.config.max_iterations)
+        n = len(self.chain)
+        return Hypothesis(
+            hypothesis_id, parent.id, constraint_ids, window, np.arange(n, dtype=np.int64), solution.poses,
+            chi2=solution.chi2, added_constraint_id=added,
+        )
+
+    def evaluate(self, hypothesis: Hypothesis, constraint_ids: np.ndarray) -> tuple[np.ndarray, None]:
+        if len(constraint_ids) == 0:
+            return np.zeros(0, dtype=bool), None
+        cons = self.history.constraints
+        q = np.array([cons[c].query_frame for c in constraint_ids])
+        m = np.array([cons[c].match_frame for c in constraint_ids])
+        consistent = position_consistent(
+            hypothesis.poses_at(self.chain, q), hypothesis.poses_at(self.chain, m), self.config.consistency_radius_m
+        )
+        return consistent, None
+
+    def rank_key(self, hypothesis: Hypothesis, score: int, support: float) -> float:
+        return float(score)
+
+    def tie_key(self, hypothesis: Hypothesis) -> float:
+        return 0.0
+
+    def forget(self, hypothesis_id: int) -> None:
+        pass
+
+    def final_trajectory(self, top: Hypothesis, accepted_ids: tuple[int, ...]) -> np.ndarray:
+        return top.trajectory(self.chain)
+
+
+# ----------------------------------------------------------------------------------------------
+# ilv+: Mahalanobis consistency, consensus refinement, reduced graphs
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class _Conditioning:
+    """A hypothesis' loops as a Gaussian-process update of the odometry random walk.
+
+    ``members`` index the loops used (at most ``max_covariance_loops``); ``k_inv`` is
+    ``(P_LL + W_L)⁻¹`` (``3n × 3n``) and ``position`` maps a constraint id to its member index.
+    """
+
+    m: np.ndarray
+    q: np.ndarray
+    k_inv: np.ndarray
+    position: dict[int, int]
+
+
+class PlusModel:
+    """``ilv+`` (see the module docstring)."""
+
+    def __init__(self, chain: OdometryChain, history: ConstraintHistory, config: VerificationConfig):
+        self.chain = chain
+        self.history = history
+        self.config = config
+        self.plus = config.ilv_plus
+        self._m = np.zeros(0, dtype=np.int64)
+        self._q = np.zeros(0, dtype=np.int64)
+        self._z = np.zeros((0, 3))
+        self._r = np.zeros((0, 3, 3))  # measurement covariances
+        self._cond: dict[int, _Conditioning] = {}
+
+    # ------------------------------------------------------------------ constraints
+    def _sync(self) -> None:
+        """Cache the arrays of constraints admitted since the last call."""
+        cons = self.history.constraints
+        start = len(self._m)
+        if start == len(cons):
+            return
+        factors = [pose_graph.loop_factor(c, self.history.loop_default_information) for c in cons[start:]]
+        self._m = np.concatenate([self._m, [f.match_frame for f in factors]]).astype(np.int64)
+        self._q = np.concatenate([self._q, [f.query_frame for f in factors]]).astype(np.int64)
+        self._z = np.concatenate([self._z, np.array([f.measured for f in factors]).reshape(-1, 3)])
+        self._r = np.concatenate([self._r, np.linalg.inv(np.array([f.information for f in factors]).reshape(-1, 3, 3))])
+
+    def eligible(self, constraints: Sequence[Constraint]) -> np.ndarray:
+        self._sync()
+        return np.array([c.query_frame - c.match_frame >= self.plus.min_loop_gap_frames for c in constraints], dtype=bool)
+
+    def _factors(self, ids: Sequence[int]) -> list[pose_graph.LoopFactor]:
+        return [
+            pose_graph.LoopFactor(int(self._m[c]), int(self._q[c]), self._z[c], np.linalg.inv(self._r[c])) for c in ids
+        ]
+
+    # ------------------------------------------------------------------ solving
+    def _solve_set(self, ids: tuple[int, ...], warm: Hypothesis, hypothesis_id: int) -> tuple[np.ndarray, np.ndarray, float]:
+        nodes = np.unique(np.concatenate([[0], self._m[list(ids)], self._q[list(ids)]])).astype(np.int64)
+        graph = pose_graph.build_reduced_graph(self.chain, nodes, self._factors(ids))
+        initial = warm.poses_at(self.chain, nodes)
+        solution = pose_graph.optimise_lm(graph, initial, keys=nodes, max_iterations=self.config.max_iterations)
+        return nodes, solution.poses, solution.chi2
+
+    def solve(self, parent: Hypothesis, constraint_ids: tuple[int, ...], *, hypothesis_id: int, window: int, added: int) -> Hypothesis:
+        self._sync()
+        ids = tuple(constraint_ids)
+        nodes, poses, chi2 = self._solve_set(ids, parent, hypothesis_id)
+        hypothesis = Hypothesis(hypothesis_id, parent.id, ids, window, nodes, poses, chi2=chi2, added_constraint_id=added)
+        self._condition(hypothesis)
+        all_ids = np.arange(len(self._m), dtype=np.int64)
+        for _ in range(self.plus.closure_rounds):
+            ok = self.evaluate(hypothesis, all_ids)[0]
+            members = np.zeros(len(all_ids), dtype=bool)
+            members[list(ids)] = True
+            keep = members & ok
+            if added is not None and not ok[added]:
+                keep[added] = True  # the drawn constraint stays: this child tests it
+            refined = tuple(int(c) for c in ids if keep[c]) + tuple(int(c) for c in np.flatnonzero(ok & ~members))
+            if set(refined) == set(ids):
+                break
+            self.forget(hypothesis_id)
+            ids = refined
+            nodes, poses, chi2 = self._solve_set(ids, hypothesis, hypothesis_id)
+            hypothesis = Hypothesis(hypothesis_id, parent.id, ids, window, nodes, poses, chi2=chi2, added_constraint_id=added)
+            self._condition(hypothesis)
+        return hypothesis
+
+    def _eligible_mask(self) -> np.ndarray:
+        return (self._q - self._m) >= self.plus.min_loop_gap_frames
+
+    # ------------------------------------------------------------------ uncertainty
+    def _condition(self, hypothesis: Hypothesis) -> _Conditioning:
+        """The hypothesis' loops as a Gaussian-process update, in each loop's local coordinates
+        (``e_l = Ad(O_q)⁻¹ (ξ_q - ξ_m)``, the tangent space of its factor's residual), where the
+        covariances have their natural, relative scale: ``K = A P Aᵀ + R`` over the members."""
+        cond = self._cond.get(hypothesis.id)
+        if cond is not None:
+            return cond
+        ids = np.asarray(hypothesis.constraint_ids, dtype=np.int64)
+        if len(ids) > self.plus.max_covariance_loops:  # evenly spread subset (conservative covariance)
+            pick = np.linspace(0, len(ids) - 1, self.plus.max_covariance_loops).round().astype(np.int64)
+            ids = ids[np.argsort(self._q[ids], kind="stable")][pick]
+        m, q = self._m[ids], self._q[ids]
+        n = len(ids)
+        if n:
+            a = pose_graph.se2_adjoint_inverse(self.chain.poses[q])
+            p = self.chain.pair_covariance(m[:, None], q[:, None], m[None, :], q[None, :])  # (n, n, 3, 3)
+            p = a[:, None] @ p @ np.swapaxes(a, -1, -2)[None, :]
+            k = p.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)
+            for j, c in enumerate(ids):
+                k[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += self._r[c]
+            k_inv = _spd_inverse(k)
+        else:
+            k_inv = np.zeros((0, 0))
+        cond = _Conditioning(m, q, k_inv, {int(c): j for j, c in enumerate(ids)})
+        self._cond[hypothesis.id] = cond
+        return cond
+
+    def mahalanobis(self, hypothesis: Hypothesis, constraint_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Innovation of each constraint under the hypothesis (non-members: given the hypothesis'
+        graph; members: leave-one-out, given the graph without it).
+
+        Returns:
+            ``(d2 (K,), log_det_ratio (K,))``: squared Mahalanobis distance ``rᵀ C⁻¹ r`` and
+            ``log det C - log det R`` (how much wider the innovation covariance ``C`` is than the
+            measurement covariance ``R`` alone).
+        """
+        self._sync()
+        ids = np.asarray(constraint_ids, dtype=np.int64)
+        if len(ids) == 0:
+            return np.zeros(0), np.zeros(0)
+        cond = self._condition(hypothesis)
+        m, q = self._m[ids], self._q[ids]
+        x_m = hypothesis.poses_at(self.chain, m)
+        x_q = hypothesis.poses_at(self.chain, q)
+        r = pose_graph.se2_logmap(pose_graph.se2_between(self._z[ids], pose_graph.se2_between(x_m, x_q)))
+        a_c = pose_graph.se2_adjoint_inverse(self.chain.poses[q])
+        prior = a_c @ self.chain.pair_covariance(m, q, m, q) @ np.swapaxes(a_c, -1, -2)
+        n = len(cond.m)
+        if n:
+            a_l = pose_graph.se2_adjoint_inverse(self.chain.poses[cond.q])
+            p_cl = self.chain.pair_covariance(m[:, None], q[:, None], cond.m[None, :], cond.q[None, :])  # (K, n, 3, 3)
+            p_cl = a_c[:, None] @ p_cl @ np.swapaxes(a_l, -1, -2)[None, :]
+            p_cl = p_cl.transpose(0, 2, 1, 3).reshape(len(ids), 3, 3 * n)
+            prior = prior - (p_cl @ cond.k_inv) @ np.swapaxes(p_cl, -1, -2)
+        cov = self._r[ids] + 0.5 * (prior + np.swapaxes(prior, -1, -2))
+        d2 = mahalanobis_d2(r, cov)
+        log_det_r = np.linalg.slogdet(self._r[ids])[1]
+        log_ratio = np.linalg.slogdet(cov)[1] - log_det_r
+        member_rows = [(k, cond.position[int(c)]) for k, c in enumerate(ids) if int(c) in cond.position]
+        if member_rows:
+            rows = np.array([k for k, _ in member_rows])
+            pos = np.array([j for _, j in member_rows])
+            blocks = np.stack([cond.k_inv[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] for j in pos])
+            # leave-one-out innovation: u = R⁻¹ r,  d² = uᵀ B⁻¹ u  with B the member's block of K⁻¹;
+            # its covariance in r coordinates is C = R B R, so log det C - log det R = log det R + log det B
+            u = np.linalg.solve(self._r[ids[rows]], r[rows][..., None])[..., 0]
+            d2[rows] = mahalanobis_d2(u, blocks)
+            log_ratio[rows] = log_det_r[rows] + np.linalg.slogdet(blocks)[1]
+        return d2, log_ratio
+
+    def log_likelihood_ratio(self, hypothesis: Hypothesis, constraint_ids: np.ndarray) -> np.ndarray:
+        """``(K,)``: ``½ (gate - d²) - ½ (log det C - log det R)``, the log-likelihood ratio of
+        "inlier" (Gaussian innovation) against "outlier" (a density at which a constraint measured
+        with covariance ``R`` is a coin toss at ``d² = gate``). Positive means consistent."""
+        d2, log_ratio = self.mahalanobis(hypothesis, constraint_ids)
+        return 0.5 * (self.plus.gate_chi2 - d2) - 0.5 * log_ratio
+
+    def evaluate(self, hypothesis: Hypothesis, constraint_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ids = np.asarray(constraint_ids, dtype=np.int64)
+        llr = self.log_likelihood_ratio(hypothesis, ids)
+        consistent = (llr > 0.0) & self._eligible_mask()[ids]
+        return consistent, np.where(consistent, llr, 0.0)
+
+    def rank_key(self, hypothesis: Hypothesis, score: int, support: float) -> float:
+        return float(support)
+
+    def tie_key(self, hypothesis: Hypothesis) -> float:
+        return 0.0 if hypothesis.chi2 is None else hypothesis.chi2
+
+    def forget(self, hypothesis_id: int) -> None:
+        self._cond.pop(hypothesis_id, None)
+
+    def final_trajectory(self, top: Hypothesis, accepted_ids: tuple[int, ...]) -> np.ndarray:
+        if set(accepted_ids) == set(top.constraint_ids):
+            return top.trajectory(self.chain)
+        try:
+            nodes, poses, _ = self._solve_set(tuple(accepted_ids), top, -1)
+        except pose_graph.OptimisationFailed:
+            return top.trajectory(self.chain)
+        return self.chain.interpolate(nodes, poses, np.arange(len(self.chain)))
+
+
+def _spd_inverse(matrix: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive-definite matrix, equilibrated (``D^-½ K D^-½``) first."""
+    d = 1.0 / np.sqrt(np.diag(matrix))
+    scaled = matrix * d[:, None] * d[None, :]
+    inv = np.linalg.inv(0.5 * (scaled + scaled.T))
+    return inv * d[:, None] * d[None, :]
+
+
+# ----------------------------------------------------------------------------------------------
+# Registration
+# ----------------------------------------------------------------------------------------------
+
+
+@register("ilv", help="the paper's multi-model hypothesize-and-verify (full GTSAM graphs, 10 m test)")
+def _make_ilv(config: VerificationConfig, *, odometry_information=None) -> IncrementalVerifier:
+    return IncrementalVerifier("ilv", config, PaperModel, odometry_information=odometry_information)
+
+
+@register("ilv+", help="improved ilv: Mahalanobis consistency, consensus refinement, reduced graphs")
+def _make_ilv_plus(config: VerificationConfig, *, odometry_information=None) -> IncrementalVerifier:
+    schedule = dataclasses.replace(
+        config,
+        iterations_per_window=config.ilv_plus.iterations_per_window,
+        hypotheses_per_iteration=config.ilv_plus.hypotheses_per_iteration,
+        max_hypotheses=max(config.max_hypotheses, config.ilv_plus.hypotheses_per_iteration),
+    )
+    return IncrementalVerifier("ilv+", schedule, PlusModel, odometry_information=odometry_information)

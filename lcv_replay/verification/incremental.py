@@ -1,0 +1,309 @@
+"""The incremental schedule of multi-model hypothesize-and-verify (paper sec. II-D).
+
+:class:`IncrementalVerifier` is the thin stateful shell shared by ``ilv`` and ``ilv+``. It owns the
+frames (an :class:`~lcv_replay.verification.pose_graph.OdometryChain`), the constraint history,
+the kept hypotheses, the consistency table and the random generator; a :class:`HypothesisModel`
+says how a hypothesis is solved, tested against constraints and ranked.
+
+Schedule, at the end of every window of ``W`` frames (and once more in :meth:`result` for the last,
+partial window):
+
+1. the constraints that arrived during the window add columns to the table (every kept hypothesis
+   is tested against them; nothing else is recomputed, see :mod:`~.consistency`);
+2. ``iterations_per_window`` iterations; each takes the ``hypotheses_per_iteration`` top-ranked
+   hypotheses (ranking refreshed every iteration) and extends each by one constraint drawn by
+   sequential selection (:mod:`~.hypotheses`); each child is solved warm-started from its parent
+   and adds one row to the table. With the paper's 10 × 10 that is ``N_g = 100`` per window;
+3. after each iteration the lowest-ranked hypotheses are pruned so that at most ``max_hypotheses``
+   are kept (the odometry root is always kept and counts towards the bound);
+4. a :class:`~lcv_replay.verification.base.VerifierStep` reports the ranking, the generation edges,
+   the accepted constraints (those consistent with the rank-1 hypothesis), the top-k trajectories
+   and the table.
+
+Space is bounded by ``max_hypotheses`` rows (plus one iteration's children) of ``C`` booleans and
+each hypothesis' nodes; nothing grows with the square of the log length.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Callable, Protocol, Sequence
+
+import numpy as np
+
+from lcv_replay.errors import VerificationError
+from lcv_replay.records import LoopCandidate, Pose2D
+from lcv_replay.verification.base import Constraint, HypothesisSummary, VerificationResult, VerifierStep
+from lcv_replay.verification.baselines import ConstraintHistory, default_informations
+from lcv_replay.verification.config import VerificationConfig
+from lcv_replay.verification.consistency import ConsistencyTable, position_consistent
+from lcv_replay.verification.hypotheses import (
+    Hypothesis,
+    draw_constraint,
+    odometry_root,
+    prune,
+    rank_order,
+    selectable_constraints,
+)
+from lcv_replay.verification.pose_graph import OdometryChain, OptimisationFailed
+
+log = logging.getLogger(__name__)
+
+
+class HypothesisModel(Protocol):
+    """How hypotheses are solved, tested and ranked (``ilv`` and ``ilv+`` differ only here)."""
+
+    def eligible(self, constraints: Sequence[Constraint]) -> np.ndarray:
+        """``(K,)`` bool: which of these (new) constraints may ever be drawn or accepted."""
+
+    def solve(self, parent: Hypothesis, constraint_ids: tuple[int, ...], *, hypothesis_id: int, window: int, added: int) -> Hypothesis:
+        """Optimise the odometry plus ``constraint_ids`` warm-started from ``parent``.
+
+        Raises:
+            OptimisationFailed: the optimiser failed (the hypothesis is dropped, not the run).
+        """
+
+    def evaluate(self, hypothesis: Hypothesis, constraint_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """``((K,) bool, (K,) float or None)``: which constraints are consistent with the
+        hypothesis, and each one's support (a float summed for ranking; ``None`` for none)."""
+
+    def rank_key(self, hypothesis: Hypothesis, score: int, support: float) -> float:
+        """Larger ranks first (``ilv``: the score; ``ilv+``: the support)."""
+
+    def tie_key(self, hypothesis: Hypothesis) -> float:
+        """Smaller ranks first among equal ``rank_key`` (then the older id)."""
+
+    def forget(self, hypothesis_id: int) -> None:
+        """Drop any per-hypothesis cache (the hypothesis was pruned)."""
+
+    def final_trajectory(self, top: Hypothesis, accepted_ids: tuple[int, ...]) -> np.ndarray:
+        """``(N, 3)``: the trajectory reported in the result."""
+
+
+ModelFactory = Callable[[OdometryChain, ConstraintHistory, VerificationConfig], HypothesisModel]
+
+
+class IncrementalVerifier:
+    """Multi-model hypothesize-and-verify, fed frame by frame (the ``Verifier`` protocol).
+
+    Args:
+        name: the method name (``"ilv"``, ``"ilv+"``).
+        config: window length, iterations, bound and seed.
+        model_factory: builds the :class:`HypothesisModel` over this verifier's chain and history.
+        odometry_information: ``(3, 3)`` information of one odometry step from the log, or
+            ``None`` for ``config.odometry_sigmas``.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        config: VerificationConfig,
+        model_factory: ModelFactory,
+        *,
+        odometry_information: np.ndarray | None = None,
+    ):
+        self.name = name
+        self.config = config
+        odom_info, loop_info = default_informations(config, odometry_information)
+        self.chain = OdometryChain(odom_info)
+        self.history = ConstraintHistory(loop_info)
+        self.model = model_factory(self.chain, self.history, config)
+        self.rng = np.random.default_rng(config.seed)
+        self.table = ConsistencyTable()
+        self.hypotheses: dict[int, Hypothesis] = {}
+        self._sets: dict[frozenset[int], int] = {}
+        self._eligible = np.zeros(0, dtype=bool)
+        self._next_id = 0
+        self._window = 0
+        self._stepped_frames = 0
+        self._last_step: VerifierStep | None = None
+        self._result: VerificationResult | None = None
+
+    # ------------------------------------------------------------------ Verifier protocol
+    def add_frame(self, frame_index: int, odom: Pose2D) -> None:
+        if self._result is not None:
+            raise VerificationError(f"{self.name}: add_frame after result()", fix="build a new verifier")
+        if frame_index != len(self.chain):
+            raise VerificationError(
+                f"{self.name}: frame {frame_index} added, expected frame {len(self.chain)}",
+                fix="feed frames in order, each exactly once",
+            )
+        values = np.array([[float(odom[0]), float(odom[1]), float(odom[2])]])
+        if not np.all(np.isfinite(values)):
+            raise VerificationError(f"{self.name}: frame {frame_index} has non-finite odometry {values[0].tolist()}")
+        self.chain.extend(values)
+
+    def add_candidates(self, candidates: Sequence[LoopCandidate]) -> list[Constraint]:
+        if self._result is not None:
+            raise VerificationError(f"{self.name}: add_candidates after result()", fix="build a new verifier")
+        return self.history.admit(candidates, len(self.chain))
+
+    def step(self) -> VerifierStep | None:
+        n = len(self.chain)
+        if n == 0 or n % self.config.window_frames != 0 or n == self._stepped_frames:
+            return None
+        return self._window_end()
+
+    def result(self) -> VerificationResult:
+        if self._result is not None:
+            return self._result
+        if len(self.chain) == 0:
+            raise VerificationError(f"{self.name}: no frames were added", fix="feed at least one frame")
+        if len(self.chain) != self._stepped_frames or len(self.history) != self.table.num_constraints:
+            self._window_end()
+        step = self._last_step
+        assert step is not None  # a window end ran above or earlier
+        top = self.hypotheses[step.ranking[0].id]
+        trajectory = self.model.final_trajectory(top, step.accepted_constraint_ids)
+        constraints = tuple(self.history.constraints)
+        paper = self._paper_consistent(trajectory, constraints)
+        self._result = VerificationResult(
+            method=self.name,
+            constraints=constraints,
+            accepted_constraint_ids=step.accepted_constraint_ids,
+            trajectory=trajectory,
+            ranking=step.ranking,
+            paper_consistent_ids=paper,
+            last_step=step,
+        )
+        return self._result
+
+    # ------------------------------------------------------------------ the schedule
+    def ranked_ids(self) -> list[int]:
+        """Kept hypothesis ids, best first."""
+        ids = self.table.hypothesis_ids
+        keys = {h: self.model.rank_key(self.hypotheses[h], self.table.score(h), self.table.support(h)) for h in ids}
+        ties = {h: self.model.tie_key(self.hypotheses[h]) for h in ids}
+        return rank_order(ids, keys, ties)
+
+    def _window_end(self) -> VerifierStep:
+        start = time.perf_counter()
+        timings = {"columns": 0.0, "optimise": 0.0, "rows": 0.0, "prune": 0.0}
+        n = len(self.chain)
+        constraints = self.history.constraints
+        first_new = self.table.num_constraints
+        new_ids = np.arange(first_new, len(constraints), dtype=np.int64)
+        if new_ids.size:
+            self._eligible = np.concatenate([self._eligible, self.model.eligible(constraints[first_new:])])
+        if 0 not in self.hypotheses:
+            root = odometry_root(self.chain, window=self._window)
+            self._keep(root, *self.model.evaluate(root, np.arange(first_new, dtype=np.int64)))
+        # 1. new constraints -> new columns
+        t = time.perf_counter()
+        if new_ids.size:
+            ids = self.table.hypothesis_ids
+            evaluations = [self.model.evaluate(self.hypotheses[h], new_ids) for h in ids]
+            block = np.stack([e[0] for e in evaluations])
+            support = None if evaluations[0][1] is None else np.stack([e[1] for e in evaluations])
+            self.table.add_constraints(ids, block, support)
+        timings["columns"] += time.perf_counter() - t
+        # 2-3. generation and pruning
+        edges: list[tuple[int, int, int]] = []
+        created: list[int] = []
+        dropped: list[tuple[int, str]] = []
+        all_ids = np.arange(len(constraints), dtype=np.int64)
+        for _ in range(self.config.iterations_per_window):
+            parents = self.ranked_ids()[: self.config.hypotheses_per_iteration]
+            grew = False
+            for parent_id in parents:
+                parent = self.hypotheses[parent_id]
+                choices = selectable_constraints(
+                    parent, self.table.row(parent_id), eligible=self._eligible, existing_sets=self._sets
+                )
+                added = draw_constraint(self.rng, choices)
+                if added is None:
+                    continue
+                child_id = self._next_id
+                self._next_id += 1
+                t = time.perf_counter()
+                try:
+                    child = self.model.solve(
+                        parent, parent.constraint_ids + (added,), hypothesis_id=child_id, window=self._window, added=added
+                    )
+                except OptimisationFailed as exc:
+                    log.warning("%s: dropped hypothesis %d (parent %d + constraint %d): %s", self.name, child_id, parent_id, added, exc.message)
+                    dropped.append((child_id, f"optimiser failure: {exc.message}"))
+                    continue
+                finally:
+                    timings["optimise"] += time.perf_counter() - t
+                edges.append((parent_id, child_id, added))
+                if child.constraint_set in self._sets:
+                    dropped.append((child_id, f"same constraint set as hypothesis {self._sets[child.constraint_set]}"))
+                    self.model.forget(child_id)
+                    continue
+                t = time.perf_counter()
+                self._keep(child, *self.model.evaluate(child, all_ids))
+                timings["rows"] += time.perf_counter() - t
+                created.append(child_id)
+                grew = True
+            t = time.perf_counter()
+            kept, pruned = prune(self.ranked_ids(), self.config.max_hypotheses, keep={0})
+            for rank, h in enumerate(pruned, start=len(kept) + 1):
+                self._forget(h)
+                dropped.append((h, f"pruned at rank {rank}"))
+            timings["prune"] += time.perf_counter() - t
+            if not grew:
+                break  # nothing left to draw for the top hypotheses
+        # 4. report
+        ranking_ids = self.ranked_ids()
+        summaries = tuple(self._summary(h, rank) for rank, h in enumerate(ranking_ids, start=1))
+        by_id = {s.id: s for s in summaries}
+        top = ranking_ids[0]
+        accepted = tuple(int(i) for i in np.flatnonzero(self.table.row(top) & self._eligible))
+        top_k = ranking_ids[: self.config.top_k_trajectories]
+        trajectories = {h: self.hypotheses[h].trajectory(self.chain) for h in top_k}
+        timings["total"] = time.perf_counter() - start
+        step = VerifierStep(
+            frame_index=n - 1,
+            window_index=self._window,
+            new_constraint_ids=tuple(int(i) for i in new_ids),
+            new_hypotheses=tuple(by_id[h] for h in created if h in by_id),
+            generation_edges=tuple(edges),
+            ranking=summaries,
+            accepted_constraint_ids=accepted,
+            trajectories=trajectories,
+            consistency=self.table.matrix(ranking_ids),
+            timings_s=timings,
+            dropped=tuple(dropped),
+        )
+        self._window += 1
+        self._stepped_frames = n
+        self._last_step = step
+        return step
+
+    # ------------------------------------------------------------------ internals
+    def _keep(self, hypothesis: Hypothesis, row: np.ndarray, support: np.ndarray | None = None) -> None:
+        self.table.add_hypothesis(hypothesis.id, row, support)
+        self.hypotheses[hypothesis.id] = hypothesis
+        self._sets[hypothesis.constraint_set] = hypothesis.id
+        self._next_id = max(self._next_id, hypothesis.id + 1)
+
+    def _forget(self, hypothesis_id: int) -> None:
+        hypothesis = self.hypotheses.pop(hypothesis_id)
+        self.table.remove([hypothesis_id])
+        if self._sets.get(hypothesis.constraint_set) == hypothesis_id:
+            del self._sets[hypothesis.constraint_set]
+        self.model.forget(hypothesis_id)
+
+    def _summary(self, hypothesis_id: int, rank: int) -> HypothesisSummary:
+        h = self.hypotheses[hypothesis_id]
+        score = self.table.score(hypothesis_id)
+        return HypothesisSummary(
+            id=h.id,
+            parent_id=h.parent_id,
+            constraint_ids=h.constraint_ids,
+            score=score,
+            rank=rank,
+            window=h.window,
+            chi2=h.chi2,
+            rank_key=float(self.model.rank_key(h, score, self.table.support(hypothesis_id))),
+        )
+
+    def _paper_consistent(self, trajectory: np.ndarray, constraints: Sequence[Constraint]) -> tuple[int, ...]:
+        if not constraints:
+            return ()
+        q = np.array([c.query_frame for c in constraints])
+        m = np.array([c.match_frame for c in constraints])
+        ok = position_consistent(trajectory[q], trajectory[m], self.config.consistency_radius_m)
+        return tuple(int(i) for i in np.flatnonzero(ok))
