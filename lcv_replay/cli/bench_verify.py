@@ -1,5 +1,156 @@
-"""`lcv-replay` commands: bench_verify."""
+"""`lcv-replay bench verify` and `lcv-replay bench suite`: verification-only benchmarks."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+
 from lcv_replay.cli.app import app, bench_app, record_app  # noqa: F401
+
+_METHOD_HELP = "Verification method (repeatable): ilv, ilv+, none, ir-only, dcs, gm, cauchy, gnc, oracle, ..."
+
+
+def _load_verification_config(config: Optional[Path]):
+    from lcv_replay.config import load_config
+
+    return load_config(config).verification
+
+
+def _check_json_output(path: Optional[Path]) -> None:
+    """Fail before any work if ``--json OUT`` cannot be written (it is overwritten if it exists)."""
+    if path is not None:
+        from lcv_replay.fileio import check_output_path
+
+        check_output_path(path, force=True)
+
+
+@bench_app.command(
+    "verify",
+    help=(
+        "Verification only (no retrieval, no Rerun) on logs carrying /loop_candidates: one row per "
+        "log and method with precision, recall, F1, ATE and time; --json writes the rows."
+    ),
+)
+def bench_verify_command(
+    logs: list[Path] = typer.Argument(..., help="lcv-replay MCAP logs with /loop_candidates (e.g. from 'record g2o')."),
+    method: list[str] = typer.Option(["ilv+"], "--method", "-m", help=_METHOD_HELP),
+    config: Optional[Path] = typer.Option(None, "--config", help="TOML config; its [verification] section is used."),
+    seed: Optional[int] = typer.Option(None, "--seed", help="Override verification.seed."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the rows as a JSON list (atomically)."),
+) -> None:
+    from lcv_replay.bench.suite import CaseRow, markdown_rows
+    from lcv_replay.bench.verify import load_inputs, verify_inputs
+    from lcv_replay.fileio import write_text_atomic
+    from lcv_replay.verification.registry import make_verifier
+
+    verification = _load_verification_config(config)
+    for name in method:  # unknown methods fail before any log is read
+        make_verifier(name, verification)
+    _check_json_output(json_out)
+    rows = []
+    for path in logs:
+        inputs = load_inputs(path)
+        for name in method:
+            rows.append(verify_inputs(inputs, name, verification, seed=seed).row)
+    typer.echo(markdown_rows([CaseRow(Path(r.log).name, r.method, r) for r in rows]))
+    if json_out is not None:
+        write_text_atomic(json_out, json.dumps([r.as_dict() for r in rows], indent=2) + "\n")
+        typer.echo(f"wrote {json_out}")
+
+
+@bench_app.command(
+    "suite",
+    help=(
+        "Run methods side by side on a suite of logs built by the g2o recorder from the shared data "
+        "(robustslam_kitti and Vertigo Manhattan with outliers); prints markdown tables, writes JSON."
+    ),
+)
+def bench_suite_command(
+    quick: bool = typer.Option(False, "--quick", help="The CI subset (suite 'quick')."),
+    suite: Optional[str] = typer.Option(None, "--suite", help="Built-in suite name (standard, quick) or a suite TOML file."),
+    method: list[str] = typer.Option([], "--method", "-m", help=_METHOD_HELP + " Default: the suite's, else every registered one."),
+    config: Optional[Path] = typer.Option(None, "--config", help="TOML config; its [verification] section is used."),
+    seed: Optional[int] = typer.Option(None, "--seed", help="Override verification.seed."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the report (rows, summary, config) as JSON."),
+    workdir: Optional[Path] = typer.Option(None, "--workdir", help="Where the suite's logs are built and reused (default ~/.cache/lcv-replay/suite)."),
+    data: Optional[Path] = typer.Option(None, "--data", help="Shared data folder (default $LCV_SHARED_DATA, else ../shared/data)."),
+    rows_table: bool = typer.Option(True, "--rows/--no-rows", help="Print the per-case table, not only the per-method summary."),
+) -> None:
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from lcv_replay.bench.suite import (
+        SuiteReport,
+        available_suite_methods,
+        default_workdir,
+        markdown_rows,
+        markdown_summary,
+        resolve_data_dir,
+        run_suite,
+    )
+    from lcv_replay.bench.suites import get_suite
+    from lcv_replay.errors import ConfigError
+    from lcv_replay.fileio import write_text_atomic
+
+    if quick and suite is not None:
+        raise ConfigError("--quick and --suite are exclusive", fix="pass one of them")
+    chosen = get_suite("quick" if quick else (suite or "standard"))
+    verification = _load_verification_config(config)
+    data_dir = resolve_data_dir(data)
+    workdir = workdir or default_workdir()
+    _check_json_output(json_out)
+    methods = available_suite_methods(method or chosen.methods)
+
+    done_rows = []
+
+    def write_report(report: SuiteReport) -> None:
+        if json_out is not None:
+            write_text_atomic(json_out, json.dumps(report.as_dict(), indent=2) + "\n")
+
+    console = Console(stderr=True)
+    progress = Progress(
+        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+        TextColumn("{task.fields[what]}"), console=console, transient=True,
+    )
+    task = progress.add_task(chosen.name, total=len(chosen.cases) * len(methods), what="")
+
+    def on_event(event) -> None:
+        what = f"building {event.case}" if event.phase == "build" else f"{event.case} · {event.method}" if event.method else ""
+        progress.update(task, completed=event.done, what=what)
+
+    import time
+
+    started = time.perf_counter()
+    try:
+        with progress:
+            report = run_suite(
+                chosen, data_dir=data_dir, workdir=workdir, config=verification, methods=methods,
+                seed=seed, progress=on_event, on_row=done_rows.append,
+            )
+    except KeyboardInterrupt:
+        from lcv_replay.config import to_dict
+
+        partial = SuiteReport(
+            chosen.name, chosen.description, data_dir, workdir, methods, tuple(done_rows), (),
+            time.perf_counter() - started, to_dict(verification), complete=False,
+        )
+        write_report(partial)
+        typer.echo(f"interrupted after {len(done_rows)} runs" + (f"; partial report in {json_out}" if json_out else ""), err=True)
+        raise typer.Exit(130) from None
+
+    reused = sum(1 for b in report.builds if b.reused)
+    typer.echo(f"suite {report.suite}: {len(chosen.cases)} cases x {len(methods)} methods in {report.wall_time_s:.1f} s "
+               f"(logs in {workdir}, {reused} reused)\n")
+    if rows_table:
+        typer.echo(markdown_rows(report.rows) + "\n")
+    typer.echo(markdown_summary(report.summary()))
+    write_report(report)
+    if json_out is not None:
+        typer.echo(f"\nwrote {json_out}")
+    errors = [r for r in report.rows if r.error]
+    if errors:
+        typer.echo(f"error: {len(errors)} runs failed, e.g. {errors[0].method} on {errors[0].case}: {errors[0].error}", err=True)
+        raise typer.Exit(1)

@@ -1,0 +1,309 @@
+"""Benchmark suites: named sets of cases (logs built by the g2o recorder) and methods.
+
+Built-in suites:
+
+``standard``
+    ``robustslam_kitti`` sequences 00, 02, 05, 06, 07 × alphas 0.00, 0.25, 0.50, 0.75, 1.00 (with
+    ground truth and true-loop labels; 25 cases) plus Vertigo Manhattan (M3500, with its ground
+    truth) spoiled with 100 and 1000 false loops in random, local and group modes (6 cases).
+``quick``
+    A CI subset: ``robustslam_kitti`` 06 at alpha 0.50 and 07 at alpha 0.00.
+
+A suite file (TOML) names its cases and optionally methods and other suites to include::
+
+    name = "hard-cases"                     # default: the file's stem
+    description = "where robust back ends fail"
+    methods = ["gnc", "ilv", "ilv+"]         # default: every registered method (see DEFAULT_METHODS)
+    include = ["quick"]                      # built-in names or TOML files (relative to this file)
+
+    [[robustslam_kitti]]                     # expands to sequences × alphas
+    sequences = ["02", "07"]
+    alphas = ["0.00", "0.50"]
+    loop_measurements = "as-recorded"        # or "same-place": drop the g2o relative poses
+
+    [[vertigo]]                              # expands to outliers × modes
+    dataset = "manhattan"
+    outliers = [100, 1000]
+    modes = ["random", "local", "group"]
+    group_size = 10
+    seed = 0
+
+    [[case]]                                 # any 2-D pose graph
+    name = "my-graph"
+    graph = "vertigo/intel/originalDataset/intel.g2o"   # relative to the data folder, or absolute
+    ground_truth = "..."                     # optional (vertices, edge chain or x y theta rows)
+    true_loops = "..."                       # optional ('i j' per line)
+    outliers = 100                           # optional outlier injection (Vertigo protocol)
+    outlier_mode = "random"
+    group_size = 10
+    seed = 0
+    loop_measurements = "as-recorded"
+
+Unknown keys are refused by name.
+"""
+
+from __future__ import annotations
+
+import difflib
+import tomllib
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Iterable, Literal
+
+from lcv_replay.errors import ConfigError
+
+LoopMeasurements = Literal["as-recorded", "same-place"]
+
+ROBUSTSLAM_SEQUENCES = ("00", "02", "05", "06", "07")
+ROBUSTSLAM_ALPHAS = ("0.00", "0.25", "0.50", "0.75", "1.00")
+VERTIGO_OUTLIERS = (100, 1000)
+VERTIGO_MODES = ("random", "local", "group")
+
+#: Methods a suite runs when it names none (those registered; ``ir-only`` at its config X).
+DEFAULT_METHODS = ("none", "ir-only", "dcs", "gm", "cauchy", "gnc", "oracle", "ilv", "ilv+")
+
+_VERTIGO_DATASETS = {
+    "manhattan": (
+        "vertigo/manhattan/originalDataset/g2o/manhattanOlson3500.g2o",
+        "vertigo/manhattan/groundTruth/manhattanOlson3500_nodes_groundTruth.dat",
+    ),
+}
+
+
+@dataclass(frozen=True)
+class SuiteCase:
+    """One log of a suite, built by the g2o recorder.
+
+    Paths are relative to the data folder unless absolute. ``outliers = 0`` injects none.
+    """
+
+    name: str
+    graph: str
+    ground_truth: str | None = None
+    true_loops: str | None = None
+    outliers: int = 0
+    outlier_mode: str = "random"
+    group_size: int = 10
+    seed: int = 0
+    loop_measurements: LoopMeasurements = "as-recorded"
+
+    def resolve(self, data_dir: Path, relative: str | None) -> Path | None:
+        """A case path resolved against ``data_dir``."""
+        if relative is None:
+            return None
+        path = Path(relative)
+        return path if path.is_absolute() else data_dir / path
+
+
+@dataclass(frozen=True)
+class Suite:
+    """A named list of cases and the methods to run on each (``()`` = :data:`DEFAULT_METHODS`)."""
+
+    name: str
+    cases: tuple[SuiteCase, ...]
+    methods: tuple[str, ...] = ()
+    description: str = ""
+
+
+# ---------------------------------------------------------------------------------------------
+# Case generators
+# ---------------------------------------------------------------------------------------------
+
+
+def robustslam_cases(
+    sequences: Iterable[str] = ROBUSTSLAM_SEQUENCES,
+    alphas: Iterable[str] = ROBUSTSLAM_ALPHAS,
+    *,
+    loop_measurements: LoopMeasurements = "as-recorded",
+) -> tuple[SuiteCase, ...]:
+    """``robustslam_kitti`` sequence × alpha cases, with ground truth and true-loop labels."""
+    cases = []
+    for seq in sequences:
+        for alpha in alphas:
+            base = f"robustslam_kitti/{seq}/kitti_{seq}"
+            suffix = "" if loop_measurements == "as-recorded" else "-same-place"
+            cases.append(
+                SuiteCase(
+                    name=f"kitti{seq}-a{alpha}{suffix}",
+                    graph=f"{base}_alpha_{alpha}.g2o",
+                    ground_truth=f"{base}_GT.g2o",
+                    true_loops=f"{base}_alpha_{alpha}_GT_LC.txt",
+                    loop_measurements=loop_measurements,
+                )
+            )
+    return tuple(cases)
+
+
+def vertigo_cases(
+    dataset: str = "manhattan",
+    outliers: Iterable[int] = VERTIGO_OUTLIERS,
+    modes: Iterable[str] = VERTIGO_MODES,
+    *,
+    group_size: int = 10,
+    seed: int = 0,
+) -> tuple[SuiteCase, ...]:
+    """A Vertigo dataset spoiled with ``outliers`` false loops in each mode (its loops labelled true)."""
+    if dataset not in _VERTIGO_DATASETS:
+        raise ConfigError(f"unknown vertigo dataset '{dataset}'", fix=f"use one of {', '.join(_VERTIGO_DATASETS)}")
+    graph, ground_truth = _VERTIGO_DATASETS[dataset]
+    return tuple(
+        SuiteCase(
+            name=f"{dataset}-{mode}-{count}",
+            graph=graph,
+            ground_truth=ground_truth,
+            outliers=int(count),
+            outlier_mode=mode,
+            group_size=group_size,
+            seed=seed,
+        )
+        for count in outliers
+        for mode in modes
+    )
+
+
+BUILTIN_SUITES: dict[str, Suite] = {
+    "standard": Suite(
+        "standard",
+        robustslam_cases() + vertigo_cases(),
+        description="robustslam_kitti 00/02/05/06/07 x 5 alphas + Manhattan with 100/1000 random/local/group outliers",
+    ),
+    "quick": Suite(
+        "quick",
+        robustslam_cases(["06"], ["0.50"]) + robustslam_cases(["07"], ["0.00"]),
+        description="CI subset: robustslam_kitti 06 alpha 0.50 and 07 alpha 0.00",
+    ),
+}
+
+
+# ---------------------------------------------------------------------------------------------
+# TOML
+# ---------------------------------------------------------------------------------------------
+
+_TOP_KEYS = {"name", "description", "methods", "include", "robustslam_kitti", "vertigo", "case"}
+_KITTI_KEYS = {"sequences", "alphas", "loop_measurements"}
+_VERTIGO_KEYS = {"dataset", "outliers", "modes", "group_size", "seed"}
+_CASE_KEYS = {"name", "graph", "ground_truth", "true_loops", "outliers", "outlier_mode", "group_size", "seed", "loop_measurements"}
+
+
+def _refuse_unknown(table: dict[str, Any], known: set[str], where: str, path: Path) -> None:
+    for key in table:
+        if key not in known:
+            close = difflib.get_close_matches(key, sorted(known), n=1)
+            hint = f"did you mean '{close[0]}'?" if close else f"known keys: {', '.join(sorted(known))}"
+            raise ConfigError(f"unknown suite key '{where}{key}'", path=path, fix=hint)
+
+
+def _typed(value: Any, kind: type | tuple[type, ...], key: str, path: Path) -> Any:
+    if isinstance(value, bool) and kind is not bool or not isinstance(value, kind):
+        name = kind.__name__ if isinstance(kind, type) else " or ".join(k.__name__ for k in kind)
+        raise ConfigError(f"suite key '{key}' = {value!r} must be a {name}", path=path)
+    return value
+
+
+def _list_of(table: dict, key: str, kind: type, path: Path, default: Iterable) -> tuple:
+    if key not in table:
+        return tuple(default)
+    values = _typed(table[key], list, key, path)
+    return tuple(_typed(v, kind, key, path) for v in values)
+
+
+def _measurements(value: Any, path: Path) -> LoopMeasurements:
+    if value not in ("as-recorded", "same-place"):
+        raise ConfigError(f"suite key 'loop_measurements' = {value!r} is not allowed", path=path, fix="use 'as-recorded' or 'same-place'")
+    return value
+
+
+def load_suite_file(path: str | Path, *, _seen: tuple[Path, ...] = ()) -> Suite:
+    """Load a suite TOML file (format in the module docstring).
+
+    Raises:
+        ConfigError: missing file, bad TOML, unknown key, wrong type, unknown suite in ``include``,
+            include cycle, or a suite without cases.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError("suite file not found", path=path, fix="pass a built-in suite name or an existing TOML file")
+    resolved = path.resolve()
+    if resolved in _seen:
+        raise ConfigError("suite files include each other in a cycle", path=path, fix="remove one of the includes")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"not valid TOML: {exc}", path=path, fix="fix the syntax") from None
+    _refuse_unknown(data, _TOP_KEYS, "", path)
+
+    cases: list[SuiteCase] = []
+    methods: tuple[str, ...] = _list_of(data, "methods", str, path, ())
+    for name in _list_of(data, "include", str, path, ()):
+        included = get_suite(name, base_dir=path.parent, _seen=(*_seen, resolved))
+        cases.extend(included.cases)
+        methods = methods or included.methods
+    for table in _typed(data.get("robustslam_kitti", []), list, "robustslam_kitti", path):
+        _refuse_unknown(_typed(table, dict, "robustslam_kitti", path), _KITTI_KEYS, "robustslam_kitti.", path)
+        cases.extend(
+            robustslam_cases(
+                _list_of(table, "sequences", str, path, ROBUSTSLAM_SEQUENCES),
+                _list_of(table, "alphas", str, path, ROBUSTSLAM_ALPHAS),
+                loop_measurements=_measurements(table.get("loop_measurements", "as-recorded"), path),
+            )
+        )
+    for table in _typed(data.get("vertigo", []), list, "vertigo", path):
+        _refuse_unknown(_typed(table, dict, "vertigo", path), _VERTIGO_KEYS, "vertigo.", path)
+        cases.extend(
+            vertigo_cases(
+                _typed(table.get("dataset", "manhattan"), str, "vertigo.dataset", path),
+                _list_of(table, "outliers", int, path, VERTIGO_OUTLIERS),
+                _list_of(table, "modes", str, path, VERTIGO_MODES),
+                group_size=_typed(table.get("group_size", 10), int, "vertigo.group_size", path),
+                seed=_typed(table.get("seed", 0), int, "vertigo.seed", path),
+            )
+        )
+    for table in _typed(data.get("case", []), list, "case", path):
+        _refuse_unknown(_typed(table, dict, "case", path), _CASE_KEYS, "case.", path)
+        for required in ("name", "graph"):
+            if required not in table:
+                raise ConfigError(f"a [[case]] lacks '{required}'", path=path, fix="give every case a name and a graph")
+        cases.append(
+            SuiteCase(
+                name=_typed(table["name"], str, "case.name", path),
+                graph=_typed(table["graph"], str, "case.graph", path),
+                ground_truth=_typed(table.get("ground_truth"), (str, type(None)), "case.ground_truth", path),
+                true_loops=_typed(table.get("true_loops"), (str, type(None)), "case.true_loops", path),
+                outliers=_typed(table.get("outliers", 0), int, "case.outliers", path),
+                outlier_mode=_typed(table.get("outlier_mode", "random"), str, "case.outlier_mode", path),
+                group_size=_typed(table.get("group_size", 10), int, "case.group_size", path),
+                seed=_typed(table.get("seed", 0), int, "case.seed", path),
+                loop_measurements=_measurements(table.get("loop_measurements", "as-recorded"), path),
+            )
+        )
+    if not cases:
+        raise ConfigError("the suite has no cases", path=path, fix="add [[robustslam_kitti]], [[vertigo]] or [[case]] tables, or include a suite")
+    names = [c.name for c in cases]
+    duplicates = sorted({n for n in names if names.count(n) > 1})
+    if duplicates:
+        raise ConfigError(f"case name '{duplicates[0]}' is used twice", path=path, fix="give every case a distinct name")
+    name = _typed(data.get("name", path.stem), str, "name", path)
+    description = _typed(data.get("description", ""), str, "description", path)
+    return Suite(name, tuple(cases), methods, description)
+
+
+def get_suite(name_or_path: str | Path, *, base_dir: Path | None = None, _seen: tuple[Path, ...] = ()) -> Suite:
+    """A built-in suite by name, or a suite TOML file (relative paths against ``base_dir``)."""
+    text = str(name_or_path)
+    if text in BUILTIN_SUITES:
+        return BUILTIN_SUITES[text]
+    path = Path(text)
+    if not path.is_absolute() and base_dir is not None:
+        path = base_dir / path
+    if path.suffix != ".toml" and not path.exists():
+        raise ConfigError(
+            f"unknown suite '{text}'",
+            fix=f"use one of {', '.join(BUILTIN_SUITES)} or a suite .toml file",
+        )
+    return load_suite_file(path, _seen=_seen)
+
+
+def with_methods(suite: Suite, methods: Iterable[str]) -> Suite:
+    """``suite`` with its methods replaced (``--method`` on the command line)."""
+    methods = tuple(methods)
+    return replace(suite, methods=methods) if methods else suite
