@@ -14,7 +14,7 @@ from typing import Iterator
 
 import typer
 
-from lcv_replay.cli.app import record_app
+from lcv_replay.cli.app import bench_app, record_app
 from lcv_replay.errors import ConfigError
 
 
@@ -112,3 +112,31 @@ def record_synthetic_command(
         stats = record_synthetic(out, options, force=force, progress=progress)
     if not quiet:
         typer.echo(stats.summary())
+
+
+@bench_app.command("synthetic", help="Recorder benchmark: frames/s, CPU per frame and MB per 1000 frames of 'record synthetic'.")
+def bench_synthetic_command(
+    frames: int = typer.Option(1500, "--frames", min=1, help="Frames per recording."),
+    resolution: list[str] = typer.Option(["640x480"], "--resolution", help="WIDTHxHEIGHT; repeat for several."),
+    image_format: list[SyntheticImageFormat] = typer.Option([SyntheticImageFormat.png], "--image-format", case_sensitive=False, help="png, jpeg or raw; repeat for several."),
+    odometry: OdometryChoice = typer.Option(OdometryChoice.simulated, "--odometry", case_sensitive=False, help="simulated or vo."),
+    workdir: Path = typer.Option(Path("bench-out"), "--workdir", help="Folder for the recorded log (overwritten)."),
+    output: Path = typer.Option(Path("bench-out/synthetic_bench.json"), "-o", "--output", help="JSON results."),
+) -> None:
+    import json
+    from dataclasses import asdict
+
+    from lcv_replay.fileio import write_text_atomic
+    from recorders.synthetic import SyntheticOptions, format_bench_results, run_synthetic_benchmark
+
+    sizes = [parse_resolution(text) for text in resolution]
+    workdir.mkdir(parents=True, exist_ok=True)
+    results = []
+    for width_px, height_px in sizes:
+        for fmt in image_format:
+            options = SyntheticOptions(frames=frames, width_px=width_px, height_px=height_px, image_format=fmt.value, odometry=odometry.value)  # type: ignore[arg-type]
+            results.append(run_synthetic_benchmark(workdir, options))
+            typer.echo(format_bench_results(results[-1:]).splitlines()[-1] if len(results) > 1 else format_bench_results(results))
+    output.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(output, json.dumps([asdict(r) for r in results], indent=2) + "\n")
+    typer.echo(f"wrote {output}")
