@@ -66,9 +66,9 @@ def detection_metrics(accepted_ids: Collection[int], truth: LoopTruth) -> Detect
         return DetectionMetrics(len(accepted), None, None, None, None, None, None, None)
     true_ids = truth.true_ids
     tp = len(accepted & true_ids)
-    fp = len(accepted) - tp
+    fp = len(accepted & truth.false_ids)  # accepted constraints of unknown truth count as neither
     fn = len(true_ids) - tp
-    precision = tp / len(accepted) if accepted else None
+    precision = tp / (tp + fp) if tp + fp else None
     recall = tp / len(true_ids) if true_ids else None
     return DetectionMetrics(len(accepted), len(true_ids), tp, fp, fn, precision, recall, f1_score(precision, recall))
 
@@ -82,7 +82,7 @@ class AteResult:
         rmse_m: RMSE after the best SE(2) alignment of the estimate onto the reference.
         unaligned_rmse_m: RMSE in the estimate's own frame (both start at the log's origin).
         T_reference_estimate: the aligning transform (applied to the estimate).
-        frames: number of poses compared.
+        frames: number of poses compared (frames with a ground-truth pose).
     """
 
     rmse_m: float
@@ -145,16 +145,23 @@ def absolute_trajectory_error(estimate: np.ndarray, reference: np.ndarray) -> At
     Args:
         estimate: ``(N, 2|3)`` estimated poses.
         reference: ``(N, 2|3)`` ground-truth poses; the first ``N`` rows are used if it is longer
-            (the estimate of a replay cut short).
+            (the estimate of a replay cut short); rows that are NaN (frames without ground
+            truth) are skipped.
     """
     e = _positions("estimate", estimate)
-    r = _positions("reference", reference)
+    r = np.asarray(reference, dtype=np.float64)
+    if r.ndim != 2 or r.shape[1] not in (2, 3):
+        raise VerificationError(f"reference must be an (N, 2) or (N, 3) array, got shape {r.shape}")
     if len(r) < len(e):
         raise VerificationError(
             f"the estimate has {len(e)} poses but the ground truth only {len(r)}",
             fix="pass the ground truth of the whole log",
         )
-    r = r[: len(e)]
+    r = r[: len(e), :2]
+    known = np.all(np.isfinite(r), axis=1)  # frames without a ground-truth pose are skipped
+    if not known.any():
+        raise VerificationError("the ground truth has no finite pose to compare with", fix="check the log's ground truth")
+    e, r = e[known], r[known]
     T = align_se2(e, r)
     aligned = transform_xy(T, e)
     rmse = float(np.sqrt(np.mean(np.sum((aligned - r) ** 2, axis=1))))

@@ -5,7 +5,8 @@ The rule (issue 3, "Evaluation"):
 1. if the log carries true-loop labels (``/ground_truth/loops``), a constraint is true exactly when
    its ``(query_frame, match_frame)`` pair is labelled;
 2. otherwise, where ground-truth poses exist, it is true when its endpoints are closer than
-   ``radius_m`` (the paper's T_p = 10 m, sec. II-A) in the ground truth;
+   ``radius_m`` (the paper's T_p = 10 m, sec. II-A) in the ground truth (unknown where a frame
+   has no ground-truth pose, a NaN row);
 3. otherwise its truth is unknown, and every metric that needs it is ``None``.
 
 Pure functions over pairs and arrays; nothing here reads a file.
@@ -123,6 +124,8 @@ def loop_truth(
     if ground_truth is not None:
         distances = endpoint_distances_m(pairs, ground_truth)
         return LoopTruth(
-            TruthSource.GROUND_TRUTH, tuple(bool(d < radius_m) for d in distances), radius_m
+            TruthSource.GROUND_TRUTH,
+            tuple(None if not np.isfinite(d) else bool(d < radius_m) for d in distances),
+            radius_m,
         )
     return LoopTruth(TruthSource.NONE, (None,) * len(pairs))

@@ -210,3 +210,16 @@ def test_evaluate_whole_run():
     assert [w.constraints for w in m.windows] == [1, 3]
     with pytest.raises(VerificationError, match="truth covers"):
         evaluate(result, truth.restricted(2))
+
+
+def test_frames_without_ground_truth_are_unknown_and_skipped():
+    gt = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [np.nan, np.nan, np.nan], [3.0, 0.0, 0.0]])
+    truth = loop_truth([(1, 0), (2, 0), (3, 0)], ground_truth=gt, radius_m=2.0)
+    assert truth.is_true == (True, None, False)
+    # The unknown constraint counts neither as a true nor as a false positive.
+    m = detection_metrics([0, 1], truth)
+    assert (m.true_positives, m.false_positives, m.precision, m.recall) == (1, 0, 1.0, 1.0)
+    ate = absolute_trajectory_error(np.nan_to_num(gt) + [5.0, 0.0, 0.0], gt)
+    assert ate.frames == 3 and ate.rmse_m == pytest.approx(0.0, abs=1e-12)
+    with pytest.raises(VerificationError, match="no finite pose"):
+        absolute_trajectory_error(np.zeros((2, 3)), np.full((2, 3), np.nan))
