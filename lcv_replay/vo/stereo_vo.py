@@ -74,7 +74,7 @@ class VoQuality:
         n_tracked: keyframe points tracked into this frame (forward-backward checked).
         n_inliers: PnP inliers after refinement.
         reprojection_rmse_px: RMS reprojection error of the inliers (NaN when no pose was solved).
-        keyframe_index: the frame tracked against (``-1`` if none).
+        keyframe_index: the keyframe this frame was tracked against (``-1`` if none).
     """
 
     index: int
@@ -301,7 +301,8 @@ def track_points(
     Args:
         pixels_px: ``(N, 2)`` float32 positions in the ``from`` image.
         guess_px: ``(N, 2)`` float32 initial positions in the ``to`` image, or ``None`` (same place).
-        max_roundtrip_px: allowed distance between a point and its round-trip track.
+        max_roundtrip_px: allowed distance between a point and its round-trip track; 0 skips the
+            backward track (half the cost).
     Returns:
         ``(N, 2)`` float32 positions in the ``to`` image and an ``(N,)`` bool mask of good tracks.
     """
@@ -319,12 +320,15 @@ def track_points(
             grey_from, grey_to, p0, p1, winSize=win, maxLevel=config.klt_levels,
             criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
-    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
-        grey_to, grey_from, p1, p0.copy(), winSize=win, maxLevel=config.klt_levels,
-        criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-    )
-    roundtrip = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
-    ok = (st1.reshape(-1) == 1) & (st2.reshape(-1) == 1) & (roundtrip <= max_roundtrip_px)
+    ok = st1.reshape(-1) == 1
+    if max_roundtrip_px > 0:
+        # Seeded at the start point, a consistent track converges at full resolution right away.
+        p0b, st2, _ = cv2.calcOpticalFlowPyrLK(
+            grey_to, grey_from, p1, p0.copy(), winSize=win, maxLevel=0,
+            criteria=criteria, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        roundtrip = np.linalg.norm((p0b - p0).reshape(-1, 2), axis=1)
+        ok &= (st2.reshape(-1) == 1) & (roundtrip <= max_roundtrip_px)
     out = p1.reshape(-1, 2)
     h, w = grey_to.shape[:2]
     ok &= (out[:, 0] >= 0) & (out[:, 1] >= 0) & (out[:, 0] <= w - 1) & (out[:, 1] <= h - 1)
@@ -416,18 +420,16 @@ def estimate_pose_pnp(
     points_m: np.ndarray,
     pixels_px: np.ndarray,
     calibration: StereoCalibration,
-    T_cur_ref_guess: np.ndarray | None,
     config: VoConfig,
 ) -> PnpResult | None:
     """Relative pose from 3-D keyframe points and their undistorted pixels in the current image.
 
-    ``cv2.solvePnPRansac`` (EPnP minimal sets, seeded with the guess), then ``cv2.solvePnPRefineLM``
+    ``cv2.solvePnPRansac`` (AP3P minimal sets, EPnP on the inliers), then ``cv2.solvePnPRefineLM``
     on the inliers, re-selecting inliers at the RANSAC threshold and refining once more.
 
     Args:
         points_m: ``(N, 3)`` points in the keyframe camera frame.
         pixels_px: ``(N, 2)`` undistorted pixels in the current left image.
-        T_cur_ref_guess: ``(4, 4)`` initial guess or ``None``.
     Returns:
         a :class:`PnpResult`, or ``None`` if there are too few points or RANSAC fails.
     """
@@ -437,17 +439,11 @@ def estimate_pose_pnp(
     K = calibration.K
     obj = np.ascontiguousarray(points_m, dtype=np.float64)
     img = np.ascontiguousarray(pixels_px, dtype=np.float64)
-    if T_cur_ref_guess is not None:
-        rvec0 = cv2.Rodrigues(T_cur_ref_guess[:3, :3])[0]
-        tvec0 = T_cur_ref_guess[:3, 3].reshape(3, 1).copy()
-        use_guess = True
-    else:
-        rvec0, tvec0, use_guess = np.zeros((3, 1)), np.zeros((3, 1)), False
     try:
         ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-            obj, img, K, None, rvec0, tvec0, useExtrinsicGuess=use_guess,
+            obj, img, K, None,
             iterationsCount=config.ransac_iterations, reprojectionError=config.ransac_reprojection_px,
-            confidence=config.ransac_confidence, flags=cv2.SOLVEPNP_ITERATIVE,
+            confidence=config.ransac_confidence, flags=cv2.SOLVEPNP_AP3P,
         )
     except cv2.error as exc:  # degenerate configurations
         logger.debug("solvePnPRansac failed: %s", exc)
@@ -483,7 +479,7 @@ def track_keyframe(
     Args:
         keyframe: the reference frame with its 3-D points.
         left_grey: the new ``(H, W)`` uint8 left image.
-        T_cur_ref_guess: ``(4, 4)`` predicted motion (seeds the tracks and PnP), or ``None``.
+        T_cur_ref_guess: ``(4, 4)`` predicted motion (seeds the tracks), or ``None``.
     Returns:
         ``(pnp, n_tracked)``: the :class:`PnpResult` (``None`` on failure) and the number of
         forward-backward consistent tracks.
@@ -498,7 +494,7 @@ def track_keyframe(
         guess = np.where(inside[:, None], guess, keyframe.pixels_px)
     tracked, ok = track_points(keyframe.grey, left_grey, keyframe.pixels_px, guess.astype(np.float32), config, config.fb_check_px)
     pixels = undistort_pixels(tracked[ok], calibration)
-    pnp = estimate_pose_pnp(keyframe.points_m[ok], pixels, calibration, T_cur_ref_guess, config)
+    pnp = estimate_pose_pnp(keyframe.points_m[ok], pixels, calibration, config)
     return pnp, int(ok.sum())
 
 
@@ -588,6 +584,7 @@ class StereoVoTracker:
 
         health = image_health(left_grey, self._prev_left, cfg) or image_health(right_grey, None, cfg)
         T_odom_predicted = self._T_odom_prev @ self._velocity
+        tracked_keyframe = -1 if self._keyframe is None else self._keyframe.index
         n_tracked, pnp = 0, None
         if health is not None:
             status = health
@@ -598,7 +595,7 @@ class StereoVoTracker:
 
         if status == TrackStatus.OK:
             T_odom_cur = self._T_odom_keyframe @ invert_se3(pnp.T_cur_ref)
-            if self._keyframe.index == index - 1:
+            if self._fallbacks_in_row == 0:  # the previous frame was tracked too
                 self._velocity = invert_se3(self._T_odom_prev) @ T_odom_cur
             self._fallbacks_in_row = 0
         elif status == TrackStatus.FIRST:
@@ -607,9 +604,16 @@ class StereoVoTracker:
             T_odom_cur = T_odom_predicted
             self._fallbacks_in_row += 1
 
-        # A new keyframe: after a good frame, at the start, or when bridging has gone on too long.
+        # A new keyframe: at the start, when the keyframe is getting old or losing its points, or
+        # when bridging a tracking gap has gone on too long.
         n_stereo = 0
-        renew = status in (TrackStatus.OK, TrackStatus.FIRST, TrackStatus.NO_REFERENCE) or self._fallbacks_in_row > cfg.max_bridge_frames
+        if status == TrackStatus.OK:
+            renew = (
+                index - self._keyframe.index >= cfg.keyframe_max_gap_frames
+                or len(pnp.inliers) < cfg.keyframe_min_inlier_fraction * self._keyframe.size
+            )
+        else:
+            renew = status in (TrackStatus.FIRST, TrackStatus.NO_REFERENCE) or self._fallbacks_in_row > cfg.max_bridge_frames
         if renew and health is None:
             keyframe = make_keyframe(index, left_grey, right_grey, self.calibration, cfg)
             n_stereo = keyframe.size
@@ -626,7 +630,7 @@ class StereoVoTracker:
             n_tracked=n_tracked,
             n_inliers=0 if pnp is None else len(pnp.inliers),
             reprojection_rmse_px=math.nan if pnp is None else pnp.rmse_px,
-            keyframe_index=-1 if self._keyframe is None else self._keyframe.index,
+            keyframe_index=tracked_keyframe,
         )
         if status.is_fallback:
             logger.debug("frame %d: %s (tracked %d, inliers %d), constant-velocity fallback", index, status.value, n_tracked, quality.n_inliers)
