@@ -28,9 +28,11 @@ periodic street tile sampled with ``cv2.remap`` from a mip level chosen per band
 background. Walls are vertical rectangles; with a level camera the depth of a wall is constant down
 each image column and its inverse depth is affine in the column, so each wall is clipped exactly in
 its parameter (near plane and the side planes of the frustum), split where its depth doubles (one mip
-level per piece), warped with ``cv2.warpPerspective`` (the plane-induced homography) into its
-bounding box and composited with a per-pixel inverse-depth buffer. Walls never occlude ground in
-front of them and are never hidden by it, so the z-buffer is needed among walls only.
+level per piece), warped with ``cv2.warpPerspective`` (the plane-induced homography) into the box
+of its still-visible pixels and composited with a per-pixel inverse-depth buffer, nearest pieces
+first; a per-column occlusion horizon skips pieces hidden behind nearer, taller walls before any
+pixel work. Walls never occlude ground in front of them and are never hidden by it, so the depth
+test is needed among walls only.
 """
 
 from __future__ import annotations
@@ -58,8 +60,11 @@ from recorders.synthetic_textures import (
 #: ``R_body_camera``: camera x right, y down, z forward -> body x forward, y left, z up.
 R_BODY_CAMERA = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
+
 def t_body_camera(config: "WorldConfig | None" = None, camera: str = "left") -> np.ndarray:
     """``(4, 4)`` pose ``T_body_camera`` of the left (or right) camera's optical frame in the body frame."""
+    if camera not in ("left", "right"):
+        raise ConfigError(f"camera {camera!r} is not 'left' or 'right'", fix="use 'left' or 'right'")
     config = config or WorldConfig()
     T = np.eye(4)
     T[:3, :3] = R_BODY_CAMERA
