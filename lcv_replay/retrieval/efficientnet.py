@@ -31,7 +31,6 @@ import threading
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Sequence
 
-import numpy as np
 
 from lcv_replay.errors import RetrievalError
 
@@ -176,10 +175,11 @@ def _make_folded_class():
             self.residual = bool(args.id_skip) and stride == 1 and args.input_filters == args.output_filters
 
         def forward(self, x):
-            y = F.relu6(self.expand(x)) if self.expand is not None else x
-            y = F.relu6(self.depthwise(y))
+            # in-place activations and residual add: every conv output is a fresh tensor
+            y = F.relu6(self.expand(x), inplace=True) if self.expand is not None else x
+            y = F.relu6(self.depthwise(y), inplace=True)
             y = self.project(y)
-            return y + x if self.residual else y
+            return y.add_(x) if self.residual else y
 
     class FoldedLite0(nn.Module):
         """EfficientNet-Lite0 feature extractor with BatchNorm and padding folded into the convs.
@@ -204,13 +204,13 @@ def _make_folded_class():
 
         def forward(self, x):
             out = {}
-            x = F.relu6(self.stem(x))
+            x = F.relu6(self.stem(x), inplace=True)
             for i, block in enumerate(self.blocks):
                 x = block(x)
                 if i in self._tap_at:
                     out[self._tap_at[i]] = x
             if self.head is not None:
-                out["head"] = F.relu6(self.head(x))
+                out["head"] = F.relu6(self.head(x), inplace=True)
             return tuple(out[t] for t in self.taps)
 
     return FoldedLite0

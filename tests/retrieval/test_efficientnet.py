@@ -32,13 +32,13 @@ def _corridor_batch(corridor, n=4):
 
 @pytest.mark.parametrize("fold_padding", [True, False])
 def test_folded_network_matches_the_library_model(reference, corridor, fold_padding):
-    x = _normalised(_corridor_batch(corridor))
+    x = _normalised(_corridor_batch(corridor, 2))
     folded = enet.build_folded_model(reference, taps=("stage5", "head"), fold_padding=fold_padding)
     folded = folded.to(memory_format=torch.channels_last)
     with torch.inference_mode():
         expected = reference.extract_features(x)
         stage5, head = folded(x.contiguous(memory_format=torch.channels_last))
-    assert head.shape == expected.shape == (4, 1280, 7, 7) and stage5.shape == (4, 112, 14, 14)
+    assert head.shape == expected.shape == (2, 1280, 7, 7) and stage5.shape == (2, 112, 14, 14)
     assert float((head - expected).abs().max()) < 1e-3 * float(expected.abs().max())
     a = torch.nn.functional.normalize(expected.mean(dim=(2, 3)), dim=1)
     b = torch.nn.functional.normalize(head.mean(dim=(2, 3)), dim=1)
@@ -64,16 +64,16 @@ def test_padding_fold_is_exact_for_an_asymmetric_stride_2_conv():
 def test_backend_descriptors_are_unit_norm_batch_invariant_and_accept_grey(lite0_backend, corridor, caplog):
     images, _, _ = corridor
     assert lite0_backend.dim == 1904 and lite0_backend.input_size_px == 224
-    together = lite0_backend.describe(images[:9])
-    alone = np.stack([lite0_backend.describe([im])[0] for im in images[:3]])
-    assert together.shape == (9, 1904) and together.dtype == np.float32
+    together = lite0_backend.describe(images[:5])
+    alone = np.stack([lite0_backend.describe([im])[0] for im in images[:2]])
+    assert together.shape == (5, 1904) and together.dtype == np.float32
     assert np.allclose(np.linalg.norm(together, axis=1), 1.0, atol=1e-5)
-    assert np.abs(together[:3] - alone).max() < 1e-4
+    assert np.abs(together[:2] - alone).max() < 1e-4
     import cv2
 
     grey = cv2.cvtColor(images[0], cv2.COLOR_RGB2GRAY)
     with caplog.at_level(logging.WARNING):
-        g = lite0_backend.describe([grey, grey])[0]
+        g = lite0_backend.describe([grey])[0]
     assert float(g @ together[0]) > 0.9  # the same place, without colour
     assert any("grey replicated" in r.getMessage() for r in caplog.records)
 
