@@ -25,6 +25,7 @@ from typing import Literal
 
 import numpy as np
 
+from lcv_replay.config import require
 from lcv_replay.errors import ConfigError
 from lcv_replay.fileio import check_output_path
 from lcv_replay.records import Pose2D
@@ -62,17 +63,11 @@ class DriftConfig:
 
     def __post_init__(self) -> None:
         for key in ("translation_noise_pct", "scale_bias_pct", "yaw_noise_deg_per_m", "yaw_bias_deg_per_m"):
-            value = getattr(self, key)
-            if not math.isfinite(value):
-                raise ConfigError(f"drift '{key}' = {value!r} is not a number", fix="pass a finite number")
-        if not 0.0 <= self.translation_noise_pct <= 50.0:
-            raise ConfigError(f"drift 'translation_noise_pct' = {self.translation_noise_pct} is out of range", fix="use 0 .. 50 %")
-        if not -20.0 <= self.scale_bias_pct <= 20.0:
-            raise ConfigError(f"drift 'scale_bias_pct' = {self.scale_bias_pct} is out of range", fix="use -20 .. 20 %")
-        if not 0.0 <= self.yaw_noise_deg_per_m <= 10.0:
-            raise ConfigError(f"drift 'yaw_noise_deg_per_m' = {self.yaw_noise_deg_per_m} is out of range", fix="use 0 .. 10 deg per metre")
-        if not -5.0 <= self.yaw_bias_deg_per_m <= 5.0:
-            raise ConfigError(f"drift 'yaw_bias_deg_per_m' = {self.yaw_bias_deg_per_m} is out of range", fix="use -5 .. 5 deg per metre")
+            require(math.isfinite(getattr(self, key)), f"drift.{key}", getattr(self, key), "a finite number")
+        require(0.0 <= self.translation_noise_pct <= 50.0, "drift.translation_noise_pct", self.translation_noise_pct, "0 .. 50 %")
+        require(-20.0 <= self.scale_bias_pct <= 20.0, "drift.scale_bias_pct", self.scale_bias_pct, "-20 .. 20 %")
+        require(0.0 <= self.yaw_noise_deg_per_m <= 10.0, "drift.yaw_noise_deg_per_m", self.yaw_noise_deg_per_m, "0 .. 10 deg per metre")
+        require(-5.0 <= self.yaw_bias_deg_per_m <= 5.0, "drift.yaw_bias_deg_per_m", self.yaw_bias_deg_per_m, "-5 .. 5 deg per metre")
 
     def step_information(self, step_m: float = 1.0) -> np.ndarray | None:
         """``(3, 3)`` information matrix (x, y, yaw) of one odometry step of ``step_m`` metres.
@@ -153,24 +148,15 @@ class SyntheticOptions:
     render_threads: int = 2
 
     def __post_init__(self) -> None:
-        if not 1 <= self.frames <= 1_000_000:
-            raise ConfigError(f"frames = {self.frames} is out of range", fix="use 1 .. 1000000 frames")
-        if self.seed < 0:
-            raise ConfigError(f"seed = {self.seed} is negative", fix="use a seed >= 0")
-        if not (16 <= self.width_px <= 4096 and 16 <= self.height_px <= 4096):
-            raise ConfigError(f"resolution {self.width_px}x{self.height_px} is out of range", fix="use 16..4096 pixels per side, e.g. 640x480")
-        if self.odometry not in ("simulated", "vo"):
-            raise ConfigError(f"odometry = {self.odometry!r} is not known", fix="use 'simulated' or 'vo'")
-        if self.image_format not in ("png", "jpeg", "raw"):
-            raise ConfigError(f"image_format = {self.image_format!r} is not known", fix="use png, jpeg or raw")
-        if not 1 <= self.jpeg_quality <= 100:
-            raise ConfigError(f"jpeg_quality = {self.jpeg_quality} is out of range", fix="use 1 .. 100")
-        if not (math.isfinite(self.rate_hz) and 0 < self.rate_hz <= 1000):
-            raise ConfigError(f"rate_hz = {self.rate_hz} is out of range", fix="use 0 < rate_hz <= 1000")
-        if self.start_stamp_ns < 0:
-            raise ConfigError(f"start_stamp_ns = {self.start_stamp_ns} is negative", fix="use a stamp >= 0")
-        if not 1 <= self.render_threads <= 64:
-            raise ConfigError(f"render_threads = {self.render_threads} is out of range", fix="use 1 .. 64")
+        require(1 <= self.frames <= 1_000_000, "frames", self.frames, "1 .. 1000000 frames")
+        require(self.seed >= 0, "seed", self.seed, "a seed >= 0")
+        require(16 <= self.width_px <= 4096 and 16 <= self.height_px <= 4096, "resolution", f"{self.width_px}x{self.height_px}", "16..4096 pixels per side, e.g. 640x480")
+        require(self.odometry in ("simulated", "vo"), "odometry", self.odometry, "'simulated' or 'vo'")
+        require(self.image_format in ("png", "jpeg", "raw"), "image_format", self.image_format, "png, jpeg or raw")
+        require(1 <= self.jpeg_quality <= 100, "jpeg_quality", self.jpeg_quality, "1 .. 100")
+        require(math.isfinite(self.rate_hz) and 0 < self.rate_hz <= 1000, "rate_hz", self.rate_hz, "0 < rate_hz <= 1000")
+        require(self.start_stamp_ns >= 0, "start_stamp_ns", self.start_stamp_ns, "a stamp >= 0")
+        require(1 <= self.render_threads <= 64, "render_threads", self.render_threads, "1 .. 64")
 
     def frame_stamps_ns(self) -> np.ndarray:
         """``(frames,)`` int64 stamps: ``start_stamp_ns + round(i * 1e9 / rate_hz)``."""

@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from lcv_replay.config import require
 from lcv_replay.errors import ConfigError
 from lcv_replay.records import Pose2D, StereoCalibration
 from recorders.synthetic_textures import (
@@ -120,25 +121,20 @@ class WorldConfig:
     fog_distance_m: float = 700.0
 
     def __post_init__(self) -> None:
-        checks = [
-            (self.blocks_per_side >= 5, "blocks_per_side", self.blocks_per_side, ">= 5"),
-            (self.block_pitch_m - self.street_width_m >= 30.0, "block_pitch_m", self.block_pitch_m, "at least street_width_m + 30"),
-            (0 < self.road_width_m < self.street_width_m, "road_width_m", self.road_width_m, "0 < road_width_m < street_width_m"),
-            (self.facade_textures >= 2, "facade_textures", self.facade_textures, ">= 2"),
-            (self.side_textures >= 1, "side_textures", self.side_textures, ">= 1"),
-            (self.cloned_street_faces >= 0, "cloned_street_faces", self.cloned_street_faces, ">= 0"),
-            (0.0 <= self.alley_probability < 1.0, "alley_probability", self.alley_probability, "[0, 1)"),
-            (self.lamp_spacing_m == 0 or self.lamp_spacing_m >= 5.0, "lamp_spacing_m", self.lamp_spacing_m, "0 (none) or >= 5 m"),
-            (self.texture_px_per_m >= 4 and self.ground_px_per_m >= 4, "texture_px_per_m", self.texture_px_per_m, ">= 4 texels per metre"),
-            (self.texture_height_m >= 8.0 and self.texture_width_m >= 10.0, "texture_height_m", self.texture_height_m, ">= 8 m (width >= 10 m)"),
-            (0.5 <= self.camera_height_m < 5.0, "camera_height_m", self.camera_height_m, "0.5 .. 5 m"),
-            (self.baseline_m > 0, "baseline_m", self.baseline_m, "> 0"),
-            (0.2 <= self.focal_ratio <= 3.0, "focal_ratio", self.focal_ratio, "0.2 .. 3"),
-            (self.fog_distance_m > 0, "fog_distance_m", self.fog_distance_m, "> 0"),
-        ]
-        for ok, key, value, expected in checks:
-            if not ok:
-                raise ConfigError(f"world config '{key}' = {value!r} is out of range", fix=f"use {expected}")
+        require(self.blocks_per_side >= 5, "blocks_per_side", self.blocks_per_side, ">= 5")
+        require(self.block_pitch_m - self.street_width_m >= 30.0, "block_pitch_m", self.block_pitch_m, "at least street_width_m + 30")
+        require(0 < self.road_width_m < self.street_width_m, "road_width_m", self.road_width_m, "0 < road_width_m < street_width_m")
+        require(self.facade_textures >= 2, "facade_textures", self.facade_textures, ">= 2")
+        require(self.side_textures >= 1, "side_textures", self.side_textures, ">= 1")
+        require(self.cloned_street_faces >= 0, "cloned_street_faces", self.cloned_street_faces, ">= 0")
+        require(0.0 <= self.alley_probability < 1.0, "alley_probability", self.alley_probability, "[0, 1)")
+        require(self.lamp_spacing_m == 0 or self.lamp_spacing_m >= 5.0, "lamp_spacing_m", self.lamp_spacing_m, "0 (none) or >= 5 m")
+        require(self.texture_px_per_m >= 4 and self.ground_px_per_m >= 4, "texture_px_per_m", self.texture_px_per_m, ">= 4 texels per metre")
+        require(self.texture_height_m >= 8.0 and self.texture_width_m >= 10.0, "texture_height_m", self.texture_height_m, ">= 8 m (width >= 10 m)")
+        require(0.5 <= self.camera_height_m < 5.0, "camera_height_m", self.camera_height_m, "0.5 .. 5 m")
+        require(self.baseline_m > 0, "baseline_m", self.baseline_m, "> 0")
+        require(0.2 <= self.focal_ratio <= 3.0, "focal_ratio", self.focal_ratio, "0.2 .. 3")
+        require(self.fog_distance_m > 0, "fog_distance_m", self.fog_distance_m, "> 0")
 
 
 @dataclass(frozen=True)
@@ -921,17 +917,12 @@ class RouteConfig:
     wobble_m: float = 0.25
 
     def __post_init__(self) -> None:
-        checks = [
-            (0.05 <= self.speed_m_per_frame <= 5.0, "speed_m_per_frame", self.speed_m_per_frame, "0.05 .. 5 m per frame"),
-            (self.lateral_accel_m_per_frame2 > 0, "lateral_accel_m_per_frame2", self.lateral_accel_m_per_frame2, "> 0"),
-            (self.accel_m_per_frame2 > 0, "accel_m_per_frame2", self.accel_m_per_frame2, "> 0"),
-            (0 <= self.lane_offset_m < 4.0, "lane_offset_m", self.lane_offset_m, "0 .. 4 m"),
-            (2.0 <= self.right_turn_radius_m <= 12.0 and 2.0 <= self.left_turn_radius_m <= 12.0, "right_turn_radius_m", self.right_turn_radius_m, "2 .. 12 m"),
-            (0 <= self.wobble_m <= 1.0, "wobble_m", self.wobble_m, "0 .. 1 m"),
-        ]
-        for ok, key, value, expected in checks:
-            if not ok:
-                raise ConfigError(f"route config '{key}' = {value!r} is out of range", fix=f"use {expected}")
+        require(0.05 <= self.speed_m_per_frame <= 5.0, "speed_m_per_frame", self.speed_m_per_frame, "0.05 .. 5 m per frame")
+        require(self.lateral_accel_m_per_frame2 > 0, "lateral_accel_m_per_frame2", self.lateral_accel_m_per_frame2, "> 0")
+        require(self.accel_m_per_frame2 > 0, "accel_m_per_frame2", self.accel_m_per_frame2, "> 0")
+        require(0 <= self.lane_offset_m < 4.0, "lane_offset_m", self.lane_offset_m, "0 .. 4 m")
+        require(2.0 <= self.right_turn_radius_m <= 12.0 and 2.0 <= self.left_turn_radius_m <= 12.0, "right_turn_radius_m", self.right_turn_radius_m, "2 .. 12 m")
+        require(0 <= self.wobble_m <= 1.0, "wobble_m", self.wobble_m, "0 .. 1 m")
 
 
 def make_route(world: SyntheticWorld, frames: int, *, config: RouteConfig | None = None, seed: int | None = None) -> np.ndarray:

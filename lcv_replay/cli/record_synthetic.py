@@ -15,18 +15,13 @@ from typing import Iterator
 import typer
 
 from lcv_replay.cli.app import bench_app, record_app
+from lcv_replay.cli.record import ImageFormatChoice
 from lcv_replay.errors import ConfigError
 
 
 class OdometryChoice(str, enum.Enum):
     simulated = "simulated"
     vo = "vo"
-
-
-class SyntheticImageFormat(str, enum.Enum):
-    png = "png"
-    jpeg = "jpeg"
-    raw = "raw"
 
 
 _RESOLUTION = re.compile(r"^\s*(\d+)\s*[xX]\s*(\d+)\s*$")
@@ -80,7 +75,7 @@ def record_synthetic_command(
     drift_scale_bias_pct: float = typer.Option(0.5, "--drift-scale-bias-pct", help="Systematic scale error of the odometry, %."),
     drift_yaw_deg_per_m: float = typer.Option(0.15, "--drift-yaw-deg-per-m", help="Per-step yaw noise, degrees per metre of the step (standard deviation)."),
     drift_yaw_bias_deg_per_m: float = typer.Option(0.008, "--drift-yaw-bias-deg-per-m", help="Systematic yaw drift, degrees per metre travelled."),
-    image_format: SyntheticImageFormat = typer.Option(SyntheticImageFormat.png, "--image-format", case_sensitive=False, help="png (lossless), jpeg or raw."),
+    image_format: ImageFormatChoice = typer.Option(ImageFormatChoice.png, "--image-format", case_sensitive=False, help="png (lossless), jpeg or raw."),
     jpeg_quality: int = typer.Option(95, "--jpeg-quality", min=1, max=100, help="JPEG quality with --image-format jpeg."),
     force: bool = typer.Option(False, "--force", "-f", help="Overwrite OUT if it exists."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and no summary line."),
@@ -118,7 +113,7 @@ def record_synthetic_command(
 def bench_synthetic_command(
     frames: int = typer.Option(1500, "--frames", min=1, help="Frames per recording."),
     resolution: list[str] = typer.Option(["640x480"], "--resolution", help="WIDTHxHEIGHT; repeat for several."),
-    image_format: list[SyntheticImageFormat] = typer.Option([SyntheticImageFormat.png], "--image-format", case_sensitive=False, help="png, jpeg or raw; repeat for several."),
+    image_format: list[ImageFormatChoice] = typer.Option([ImageFormatChoice.png], "--image-format", case_sensitive=False, help="png, jpeg or raw; repeat for several."),
     odometry: OdometryChoice = typer.Option(OdometryChoice.simulated, "--odometry", case_sensitive=False, help="simulated or vo."),
     workdir: Path = typer.Option(Path("bench-out"), "--workdir", help="Folder for the recorded log (overwritten)."),
     output: Path = typer.Option(Path("bench-out/synthetic_bench.json"), "-o", "--output", help="JSON results."),
