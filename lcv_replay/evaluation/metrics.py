@@ -26,7 +26,7 @@ class DetectionMetrics:
 
     ``true_positives``/``false_positives``/``false_negatives`` are ``None`` when the truth is
     unknown; ``precision`` is ``None`` when nothing is accepted, ``recall`` when no candidate is
-    true, ``f1`` when either is ``None``.
+    true, ``f1`` (see :func:`f1_score`) only when both are.
     """
 
     accepted: int
@@ -39,13 +39,15 @@ class DetectionMetrics:
     f1: float | None
 
 
-def f1_score(precision: float | None, recall: float | None) -> float | None:
-    """Harmonic mean of precision and recall; ``None`` if either is undefined, 0 if both are 0."""
-    if precision is None or recall is None:
-        return None
-    if precision + recall == 0.0:
-        return 0.0
-    return 2.0 * precision * recall / (precision + recall)
+def f1_score(true_positives: int, false_positives: int, false_negatives: int) -> float | None:
+    """``2 TP / (2 TP + FP + FN)``, the harmonic mean of precision and recall where both exist.
+
+    It stays defined when only one of them is: nothing accepted while some candidate is true gives
+    0 (not a perfect score), accepting a false loop where no candidate is true gives 0. It is
+    ``None`` only when nothing is accepted and nothing is true.
+    """
+    denominator = 2 * true_positives + false_positives + false_negatives
+    return 2.0 * true_positives / denominator if denominator else None
 
 
 def detection_metrics(accepted_ids: Collection[int], truth: LoopTruth) -> DetectionMetrics:
@@ -70,7 +72,7 @@ def detection_metrics(accepted_ids: Collection[int], truth: LoopTruth) -> Detect
     fn = len(true_ids) - tp
     precision = tp / (tp + fp) if tp + fp else None
     recall = tp / len(true_ids) if true_ids else None
-    return DetectionMetrics(len(accepted), len(true_ids), tp, fp, fn, precision, recall, f1_score(precision, recall))
+    return DetectionMetrics(len(accepted), len(true_ids), tp, fp, fn, precision, recall, f1_score(tp, fp, fn))
 
 
 # --------------------------------------------------------------------------- ATE

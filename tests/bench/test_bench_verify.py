@@ -54,7 +54,8 @@ def test_run_verification_row_has_the_keys_and_nulls_where_undefined(kitti06):
     assert row["frames"] == 1101 and row["candidates"] == 126
     assert row["log_duration_s"] == pytest.approx(110.0)
     assert row["accepted"] == 0
-    assert row["precision"] is None and row["f1"] is None  # nothing accepted: undefined
+    assert row["precision"] is None  # nothing accepted: undefined
+    assert row["f1"] == 0.0  # but 45 true loops missed
     assert row["recall"] == 0.0 and row["false_negatives"] == 45
     assert row["ate_rmse_m"] > 3.0  # odometry only (measured 3.56 m)
     json.dumps(row)
@@ -203,7 +204,8 @@ def test_cli_bench_suite_from_a_toml_file(tmp_path):
     assert report["config"]["baselines"]["solve_every"] == "end"
     rows = {(r["case"], r["method"]): r for r in report["rows"]}
     empty = rows[("kitti07-a1.00", "dcs")]  # a graph without any loop candidate
-    assert empty["candidates"] == 0 and empty["precision"] is None and empty["recall"] is None
+    assert empty["candidates"] == 0
+    assert (empty["precision"], empty["recall"], empty["f1"]) == (None, None, None)
     assert REQUIRED_KEYS <= set(empty)
 
 

@@ -81,20 +81,21 @@ def test_nothing_accepted_gives_undefined_precision_and_zero_recall():
     m = detection_metrics([], _truth([True, False]))
     assert m.precision is None
     assert m.recall == 0.0
-    assert m.f1 is None
+    assert m.f1 == 0.0  # missing every true loop is not a perfect score
     assert m.false_negatives == 1
 
 
 def test_no_true_candidates_gives_undefined_recall():
     m = detection_metrics([1], _truth([False, False]))
     assert m.precision == 0.0
-    assert m.recall is None and m.f1 is None
+    assert m.recall is None and m.f1 == 0.0
     m_none = detection_metrics([], _truth([False, False]))
-    assert (m_none.precision, m_none.recall, m_none.true_candidates) == (None, None, 0)
+    assert (m_none.precision, m_none.recall, m_none.f1, m_none.true_candidates) == (None, None, None, 0)
 
 
-def test_zero_precision_and_recall_gives_zero_f1():
-    assert f1_score(0.0, 0.0) == 0.0
+def test_f1_is_the_harmonic_mean_where_precision_and_recall_exist():
+    assert f1_score(0, 0, 0) is None
+    assert f1_score(3, 1, 2) == pytest.approx(2 * 0.75 * 0.6 / (0.75 + 0.6))
     m = detection_metrics([1], _truth([True, False]))
     assert (m.precision, m.recall, m.f1) == (0.0, 0.0, 0.0)
 
