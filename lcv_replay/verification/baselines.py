@@ -113,6 +113,25 @@ class ConstraintHistory:
         return new
 
 
+def checked_frame(name: str, frame_index: int, expected_index: int, odom: Pose2D, *, finished: bool = False) -> tuple[float, float, float]:
+    """Validate :meth:`Verifier.add_frame` input; returns the odometry as ``(x_m, y_m, yaw_rad)``.
+
+    Raises:
+        VerificationError: after ``result()`` (``finished``), out of order, or non-finite odometry.
+    """
+    if finished:
+        raise VerificationError(f"{name}: add_frame after result()", fix="build a new verifier")
+    if frame_index != expected_index:
+        raise VerificationError(
+            f"{name}: frame {frame_index} added, expected frame {expected_index}",
+            fix="feed frames in order, each exactly once",
+        )
+    values = (float(odom[0]), float(odom[1]), float(odom[2]))
+    if not all(np.isfinite(values)):
+        raise VerificationError(f"{name}: frame {frame_index} has non-finite odometry {values}")
+    return values
+
+
 # ----------------------------------------------------------------------------------------------
 # The shared incremental shell of a batch method
 # ----------------------------------------------------------------------------------------------
@@ -172,17 +191,7 @@ class BatchVerifier:
 
     # --------------------------------------------------------------------- Verifier protocol
     def add_frame(self, frame_index: int, odom: Pose2D) -> None:
-        if self._result is not None:
-            raise VerificationError(f"{self.name}: add_frame after result()", fix="build a new verifier")
-        if frame_index != len(self._odom):
-            raise VerificationError(
-                f"{self.name}: frame {frame_index} added, expected frame {len(self._odom)}",
-                fix="feed frames in order, each exactly once",
-            )
-        values = (float(odom[0]), float(odom[1]), float(odom[2]))
-        if not all(np.isfinite(values)):
-            raise VerificationError(f"{self.name}: frame {frame_index} has non-finite odometry {values}")
-        self._odom.append(values)
+        self._odom.append(checked_frame(self.name, frame_index, len(self._odom), odom, finished=self._result is not None))
 
     def add_candidates(self, candidates: Sequence[LoopCandidate]) -> list[Constraint]:
         return self.history.admit(candidates, len(self._odom))

@@ -141,6 +141,11 @@ def test_frames_must_arrive_in_order():
     v.add_frame(0, Pose2D(0, 0, 0))
     with pytest.raises(VerificationError, match="expected frame 1"):
         v.add_frame(2, Pose2D(0, 0, 0))
+    with pytest.raises(VerificationError, match="frame 1 has non-finite odometry"):
+        v.add_frame(1, Pose2D(float("nan"), 0, 0))
+    v.result()
+    with pytest.raises(VerificationError, match="after result"):
+        v.add_frame(1, Pose2D(0, 0, 0))
 
 
 def test_a_failed_solve_keeps_the_previous_estimate_and_is_reported(world, monkeypatch):
