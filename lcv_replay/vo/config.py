@@ -17,7 +17,8 @@ class VoConfig:
 
     Features and stereo:
         fast_threshold: FAST corner threshold (grey levels).
-        bucket_px: side of the square buckets features are spread over (libviso2: 50 px buckets).
+        buckets: number of square buckets features are spread over; the bucket side is
+            ``sqrt(W * H / buckets)`` (40 px at 640x480, 49 px on KITTI; libviso2: 50 px).
         features_per_bucket: strongest corners kept per bucket (libviso2: 2).
         max_features: hard cap on features per frame, strongest first.
         stereo_row_tolerance_px: rectified stereo: a right match must lie on the same row within this.
@@ -50,7 +51,7 @@ class VoConfig:
     """
 
     fast_threshold: int = 12
-    bucket_px: int = 40
+    buckets: int = 192
     features_per_bucket: int = 4
     max_features: int = 1200
     stereo_row_tolerance_px: float = 1.0
@@ -75,7 +76,7 @@ class VoConfig:
         from lcv_replay.config import require
 
         require(1 <= self.fast_threshold <= 254, "vo.fast_threshold", self.fast_threshold, "an integer in 1..254")
-        require(self.bucket_px >= 4, "vo.bucket_px", self.bucket_px, "an integer >= 4")
+        require(self.buckets >= 1, "vo.buckets", self.buckets, "an integer >= 1")
         require(self.features_per_bucket >= 1, "vo.features_per_bucket", self.features_per_bucket, "an integer >= 1")
         require(self.max_features >= 8, "vo.max_features", self.max_features, "an integer >= 8")
         require(self.stereo_row_tolerance_px > 0, "vo.stereo_row_tolerance_px", self.stereo_row_tolerance_px, "a number > 0")

@@ -274,7 +274,7 @@ def bucket_strongest(pixels_px: np.ndarray, response: np.ndarray, bucket_px: int
 
 
 def detect_features(grey: np.ndarray, config: VoConfig) -> np.ndarray:
-    """FAST corners spread over the image by bucketing.
+    """FAST corners spread over the image by bucketing (``config.buckets`` square buckets).
 
     Returns:
         ``(N, 2)`` float32 pixel positions ``(u, v)``, strongest first; ``(0, 2)`` if none.
@@ -284,7 +284,9 @@ def detect_features(grey: np.ndarray, config: VoConfig) -> np.ndarray:
         return np.zeros((0, 2), dtype=np.float32)
     pixels = cv2.KeyPoint_convert(keypoints).astype(np.float32).reshape(-1, 2)
     response = np.fromiter((k.response for k in keypoints), dtype=np.float64, count=len(keypoints))
-    keep = bucket_strongest(pixels, response, config.bucket_px, config.features_per_bucket, config.max_features)
+    h, w = grey.shape[:2]
+    bucket_px = max(4, int(round(math.sqrt(w * h / config.buckets))))
+    keep = bucket_strongest(pixels, response, bucket_px, config.features_per_bucket, config.max_features)
     return pixels[keep]
 
 
