@@ -158,3 +158,9 @@ def test_default_cache_dir_follows_the_environment(monkeypatch, tmp_path):
     monkeypatch.delenv("LCV_CACHE_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "x"))
     assert default_cache_dir() == tmp_path / "x" / "lcv-replay" / "descriptors"
+
+
+def test_no_frames_yield_nothing_and_write_no_cache(tmp_path):
+    backend = CountingBackend()
+    assert list(describe_frames([], backend, cache_key="empty", cache_dir=tmp_path)) == []
+    assert backend.calls == 0 and not any(tmp_path.iterdir())
