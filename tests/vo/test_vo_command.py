@@ -22,7 +22,7 @@ from lcv_replay.vo.log_vo import VO_METADATA_NAME, add_vo_odometry
 from tests.vo import rendered
 
 runner = CliRunner()
-FRAMES = 30
+FRAMES = 20
 STAMP0_NS = 1_600_000_000_000_000_000
 
 
@@ -52,9 +52,9 @@ def write_log(
                 i, stamp, left=left, right=right_image if right else None,
                 odom=Pose2D(0.5 * i, 0.0, 0.0) if odometry else None, ground_truth=Pose2D(*truth[i]),
             )
-            if i == 25:
-                writer.write_loop_candidate(LoopCandidate(25, 3, 0.7, source="test"), stamp)
-                writer.write_true_loop(25, 2, stamp)
+            if i == 15:
+                writer.write_loop_candidate(LoopCandidate(15, 3, 0.7, source="test"), stamp)
+                writer.write_true_loop(15, 2, stamp)
     return path
 
 
@@ -87,7 +87,7 @@ def test_vo_command_adds_odometry_and_copies_everything(tmp_path, rendered_frame
         assert reader.info.has_odometry and reader.info.frames == FRAMES
         odom = reader.odometry()
         frames = list(reader.frames())
-        assert frames[25].candidates[0].pair == (25, 3) and frames[25].true_loops == ((25, 2),)
+        assert frames[15].candidates[0].pair == (15, 3) and frames[15].true_loops == ((15, 2),)
         assert reader.info.metadata["odometry_source"].startswith("stereo visual odometry")
         assert reader.info.metadata["dataset"] == "vo-test"
     truth = rendered_frames[0]
@@ -106,7 +106,7 @@ def test_vo_command_adds_odometry_and_copies_everything(tmp_path, rendered_frame
         meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
     assert json.loads(meta[VO_METADATA_NAME]["summary"])["frames"] == FRAMES
     assert json.loads(meta[VO_METADATA_NAME]["config"])["klt_window_px"] > 0
-    assert meta["lcv.recorder_config"] == {"frames": "30"}
+    assert meta["lcv.recorder_config"] == {"frames": "20"}
 
     summary = json.loads(report.read_text())
     assert summary["summary"]["frames"] == FRAMES and len(summary["frames"]) == FRAMES
@@ -117,7 +117,7 @@ def test_vo_command_prints_drift_against_ground_truth(tmp_path, rendered_frames)
     log = write_log(tmp_path / "in.mcap", rendered_frames)
     result = runner.invoke(app, ["vo", str(log), "-o", str(tmp_path / "out.mcap")])
     assert result.exit_code == 0, result.output
-    assert "stereo VO: 30 frames, 0 constant-velocity fallbacks" in result.output
+    assert "stereo VO: 20 frames, 0 constant-velocity fallbacks" in result.output
     assert "translational error" in result.output and "ATE" in result.output
 
 
