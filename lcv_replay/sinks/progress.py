@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+import sys
 from typing import Any
 
 from lcv_replay.sinks.base import BaseSink, FrameUpdate, RunStart, RunSummary, StepUpdate
@@ -21,7 +23,7 @@ class ProgressSink(BaseSink):
         self.console = console if console is not None else Console(stderr=True)
         self._progress = None
         self._task = None
-        self._top_score: int | None = None
+        self._swapped: list[tuple[logging.StreamHandler, Any]] = []
 
     def on_start(self, start: RunStart) -> None:
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -46,6 +48,13 @@ class ProgressSink(BaseSink):
             fps="—", realtime="—", constraints=0, top="—",
         )
         self._progress.start()
+        self._route_logging_above_the_bar()
+
+    def _route_logging_above_the_bar(self) -> None:
+        """Log lines on stderr are printed above the bar instead of through it (restored on close)."""
+        for handler in logging.getLogger().handlers:
+            if isinstance(handler, logging.StreamHandler) and handler.stream in (sys.stderr, sys.__stderr__):
+                self._swapped.append((handler, handler.setStream(_ConsoleStream(self.console))))
 
     def on_frame(self, update: FrameUpdate) -> None:
         if self._progress is None:
@@ -69,6 +78,24 @@ class ProgressSink(BaseSink):
         self.close()
 
     def close(self) -> None:
+        for handler, stream in self._swapped:
+            handler.setStream(stream)
+        self._swapped.clear()
         if self._progress is not None:
             self._progress.stop()
             self._progress = None
+
+
+class _ConsoleStream:
+    """A text stream that prints through a rich console (above a live progress bar)."""
+
+    def __init__(self, console: Any):
+        self.console = console
+
+    def write(self, text: str) -> int:
+        if text.strip():
+            self.console.print(text.rstrip("\n"), markup=False, highlight=False, soft_wrap=True)
+        return len(text)
+
+    def flush(self) -> None:
+        pass
