@@ -19,6 +19,10 @@ def _load_verification_config(config: Optional[Path]):
     return load_config(config).verification
 
 
+def _num(value) -> str:
+    return "–" if value is None else f"{value:.2f}"
+
+
 def _check_json_output(path: Optional[Path]) -> None:
     """Fail before any work if ``--json OUT`` cannot be written (it is overwritten if it exists)."""
     if path is not None:
@@ -121,6 +125,15 @@ def bench_suite_command(
         what = f"building {event.case}" if event.phase == "build" else f"{event.case} · {event.method}" if event.method else ""
         progress.update(task, completed=event.done, what=what)
 
+    def on_row(row) -> None:
+        done_rows.append(row)
+        if not console.is_terminal:  # no live bar (CI, a pipe): one line per finished run instead
+            r = row.row
+            status = f"error: {row.error}" if r is None else (
+                f"P {_num(r.precision)} R {_num(r.recall)} ATE {_num(r.ate_rmse_m)} m, {r.wall_time_s:.1f} s"
+            )
+            console.print(f"[{len(done_rows)}/{len(chosen.cases) * len(methods)}] {row.case} {row.method}: {status}", markup=False, highlight=False)
+
     import time
 
     started = time.perf_counter()
@@ -128,7 +141,7 @@ def bench_suite_command(
         with progress:
             report = run_suite(
                 chosen, data_dir=data_dir, workdir=workdir, config=verification, methods=methods,
-                seed=seed, progress=on_event, on_row=done_rows.append,
+                seed=seed, progress=on_event, on_row=on_row,
             )
     except KeyboardInterrupt:
         from lcv_replay.config import to_dict
