@@ -13,7 +13,8 @@ import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from collections import deque
+from typing import Callable, Iterable, Iterator, Sequence, TypeVar
 
 import numpy as np
 
@@ -28,6 +29,9 @@ from lcv_replay.vo.config import VoConfig
 from lcv_replay.vo.stereo_vo import VoResult, VoStep, check_calibration, check_image_size, run_vo, to_grey
 
 logger = logging.getLogger(__name__)
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 VO_METADATA_NAME = "lcv.vo"  # MCAP metadata record written next to VO odometry: config and summary
 RIGHT_IMAGE_HINT = (
@@ -73,10 +77,30 @@ def stereo_calibration_of(reader: LogReader) -> StereoCalibration:
         raise OdometryError(exc.message, path=reader.path, fix=exc.fix) from None
 
 
-def stereo_pairs(reader: LogReader, calibration: StereoCalibration, frames: Sequence[Frame] | None = None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """Decoded ``(left, right)`` grey images of every frame; checks the first pair against the calibration."""
-    for k, frame in enumerate(reader.frames() if frames is None else frames):
-        left, right = to_grey(frame.left.decode()), to_grey(frame.right.decode())
+def prefetched(items: Iterable[T], load: Callable[[T], R], *, ahead: int = 3) -> Iterator[R]:
+    """``load(item)`` for every item, in order, computed up to ``ahead`` items early on one worker
+    thread (image decoding in OpenCV releases the GIL, so it overlaps with the VO)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(1, thread_name_prefix="lcv-vo-decode") as pool:
+        pending: deque = deque()
+        iterator = iter(items)
+        for item in iterator:
+            pending.append(pool.submit(load, item))
+            if len(pending) > ahead:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+
+
+def _decode_pair(frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+    return to_grey(frame.left.decode()), to_grey(frame.right.decode())
+
+
+def stereo_pairs(reader: LogReader, calibration: StereoCalibration, frames: Iterable[Frame] | None = None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Decoded ``(left, right)`` grey images of every frame (decoded ahead on a worker thread);
+    checks the first pair against the calibration."""
+    for k, (left, right) in enumerate(prefetched(reader.frames() if frames is None else frames, _decode_pair)):
         if k == 0:
             for topic, image in ((fmt.LEFT_IMAGE_TOPIC, left), (fmt.RIGHT_IMAGE_TOPIC, right)):
                 try:
