@@ -30,7 +30,7 @@ from typing import Any, Iterable, Iterator, Literal, Protocol, Sequence
 
 import numpy as np
 
-from lcv_replay.config import ReplayConfig, require, to_dict
+from lcv_replay.config import ReplayConfig, to_dict
 from lcv_replay.errors import ConfigError, ReplayError
 from lcv_replay.evaluation.metrics import absolute_trajectory_error, detection_metrics, top_trajectory
 from lcv_replay.evaluation.truth import LoopTruth, TruthSource, loop_truth
@@ -90,10 +90,10 @@ class ReplayOptions:
 
     def __post_init__(self) -> None:
         if self.rate is not None:
-            require(math.isfinite(self.rate) and self.rate > 0, "--rate", self.rate, "a number > 0, or 'max'")
-        require(math.isfinite(self.start_offset_s) and self.start_offset_s >= 0, "--start-offset", self.start_offset_s, "seconds >= 0")
+            _check_option(math.isfinite(self.rate) and self.rate > 0, "--rate", self.rate, "a number > 0, or max")
+        _check_option(math.isfinite(self.start_offset_s) and self.start_offset_s >= 0, "--start-offset", self.start_offset_s, "seconds >= 0")
         if self.duration_s is not None:
-            require(math.isfinite(self.duration_s) and self.duration_s > 0, "--duration", self.duration_s, "seconds > 0")
+            _check_option(math.isfinite(self.duration_s) and self.duration_s > 0, "--duration", self.duration_s, "seconds > 0")
         if self.constraints is not None and self.constraints not in CONSTRAINT_SOURCES:
             raise ConfigError(f"--constraints {self.constraints!r} is not allowed", fix="use images, log or both")
 
@@ -110,6 +110,11 @@ class ReplayOptions:
         return dataclasses.replace(config, verification=verification, retrieval=retrieval)
 
 
+def _check_option(condition: bool, option: str, value: Any, expected: str) -> None:
+    if not condition:
+        raise ConfigError(f"{option} {value} is out of range", fix=f"pass {expected}")
+
+
 def parse_rate(text: str) -> float | None:
     """``"max"`` -> ``None``; otherwise a positive number (1.0 = real time)."""
     if text.strip().lower() == "max":
@@ -118,7 +123,7 @@ def parse_rate(text: str) -> float | None:
         value = float(text)
     except ValueError:
         raise ConfigError(f"--rate {text!r} is not a number", fix="pass e.g. --rate 1.0, --rate 2 or --rate max") from None
-    require(math.isfinite(value) and value > 0, "--rate", value, "a number > 0, or 'max'")
+    _check_option(math.isfinite(value) and value > 0, "--rate", text, "a number > 0, e.g. 1.0 for real time, or max")
     return value
 
 
@@ -661,9 +666,6 @@ class _Run:
         """``Verifier.result()`` (the last, partial window) and the final step for the sinks."""
         result = self.verifier.result()
         self.result = result
-        if len(result.constraints) != len(self.constraints):
-            # The verifier's history is the reference (it may merge duplicates late).
-            self.constraints = list(result.constraints)
         final = result.last_step
         if final is None or set(final.accepted_constraint_ids) != set(result.accepted_constraint_ids) or top_trajectory(final) is None:
             final = _step_from_result(result, self.last_step)

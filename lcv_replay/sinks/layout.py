@@ -6,6 +6,7 @@ directly. Poses are ``(N, 3)`` float64 ``[x_m, y_m, yaw_rad]``; positions ``(N, 
 
 from __future__ import annotations
 
+import math
 from enum import IntEnum
 from typing import Any, Mapping, Sequence
 
@@ -142,6 +143,22 @@ class MapEstimate:
         if len(self._best) == 0:
             return self.odometry.copy()
         return extend_by_odometry(self._best, self.odometry)
+
+    def position_of(self, frame: int) -> tuple[float, float]:
+        """Best position of one frame (``< N``); plain float maths, for the per-frame hot path."""
+        odom = self._buffer
+        m = len(self._best)
+        if m == 0:
+            return float(odom[frame, 0]), float(odom[frame, 1])
+        if frame < m:
+            return float(self._best[frame, 0]), float(self._best[frame, 1])
+        a, b, c = self._best[m - 1], odom[m - 1], odom[frame]
+        # delta = b⁻¹ ∘ c in b's frame, then a ∘ delta.
+        cb, sb = math.cos(b[2]), math.sin(b[2])
+        dx, dy = c[0] - b[0], c[1] - b[1]
+        lx, ly = cb * dx + sb * dy, -sb * dx + cb * dy
+        ca, sa = math.cos(a[2]), math.sin(a[2])
+        return float(a[0] + ca * lx - sa * ly), float(a[1] + sa * lx + ca * ly)
 
     def positions_of(self, frames: np.ndarray) -> np.ndarray:
         """``(K, 2)`` best positions of the given frame indices (each ``< N``)."""

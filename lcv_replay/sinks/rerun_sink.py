@@ -55,8 +55,8 @@ logger = logging.getLogger(__name__)
 APPLICATION_ID = "lcv-replay"
 #: Summary keys measured on the wall clock (they differ between identical runs).
 WALL_CLOCK_KEYS = ("wall_time_s", "x_real_time", "setup_time_s")
-TRAJECTORY_EVERY = 25  # frames between re-logs of the growing trajectories
-COLUMN_FLUSH_FRAMES = 20  # per-frame series are sent with send_columns every this many frames
+TRAJECTORY_EVERY = 50  # frames between re-logs of the growing trajectories (5 s of a 10 Hz log)
+COLUMN_FLUSH_FRAMES = 50  # per-frame series are sent with send_columns every this many frames
 PENDING_FULL_LIMIT = 500  # re-log all pending constraints at each arrival while there are this few
 PENDING_EVERY = 10  # ... else every this many frames
 CONSISTENCY_MAX_CELLS = 1_000_000  # rows of the consistency tensor are cut to fit (best first)
@@ -162,15 +162,22 @@ def start_web_server(grpc_port: int, web_port: int, memory_limit: str, *, timeou
     )
 
 
-def stop_web_server(server: subprocess.Popen) -> None:
-    """Terminate the server's whole process group (``python -m rerun`` and the viewer binary)."""
+def stop_web_server(server: subprocess.Popen, *, timeout_s: float = 10.0) -> None:
+    """Terminate the server's whole process group (``python -m rerun_cli`` and the viewer binary)
+    and wait until every process of the group is gone (so its ports are free again)."""
     with contextlib.suppress(ProcessLookupError):
         os.killpg(server.pid, signal.SIGTERM)
-    try:
-        server.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(server.pid, signal.SIGKILL)
+    deadline = time.monotonic() + timeout_s
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        server.wait(timeout=timeout_s)
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(server.pid, 0)  # raises once the group has no process left
+        except ProcessLookupError:
+            return
+        time.sleep(0.05)
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(server.pid, signal.SIGKILL)
 
 
 def _listening(port: int) -> bool:
@@ -293,7 +300,7 @@ class RerunSink(BaseSink):
             if self.config.log_right_image and frame.right is not None:
                 self._log_image(bp.CAMERA_RIGHT, frame.right.decode())
 
-        current = self._map.positions_of(np.array([frame.index]))[0]
+        current = self._map.position_of(frame.index)
         self._columns.point(bp.TRAJ_CURRENT, frame.index, frame.stamp_ns, current)
         self._columns.scalar(bp.metric_path("constraints"), frame.index, frame.stamp_ns, update.constraints_total)
         self._columns.scalar(bp.FRAME_TIME, frame.index, frame.stamp_ns, update.frame_time_s)

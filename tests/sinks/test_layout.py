@@ -129,3 +129,17 @@ def test_code_bits_msb_first(bits):
     code = (1 << (bits - 1)) | 1
     out = code_bits_msb_first(code, bits)
     assert out.shape == (bits,) and out[0] and out[-1] and out.sum() == (1 if bits == 1 else 2)
+
+
+def test_position_of_matches_positions_of():
+    odom = _odometry(40, seed=5)
+    est = MapEstimate()
+    for pose in odom[:25]:
+        est.add_odometry(pose)
+    assert est.position_of(7) == pytest.approx(tuple(odom[7, :2]))
+    best = se2_compose(np.array([3.0, -2.0, 0.4]), odom[:25])
+    est.set_best(best)
+    for pose in odom[25:]:
+        est.add_odometry(pose)
+    for k in (0, 24, 25, 39):
+        assert est.position_of(k) == pytest.approx(tuple(est.positions_of(np.array([k]))[0]), abs=1e-9)

@@ -186,3 +186,41 @@ def test_outputs_are_checked_before_any_work(tmp_path):
     assert web_viewer_url(9090, "rerun+http://127.0.0.1:9876/proxy") == (
         "http://127.0.0.1:9090/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A9876%2Fproxy"
     )
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _accepts(host: str, port: int) -> bool:
+    import socket
+
+    with socket.socket() as s:
+        s.settimeout(0.5)
+        return s.connect_ex((host, port)) == 0
+
+
+def test_serve_binds_to_loopback_only_and_tees_with_the_file(tmp_path):
+    import socket
+
+    grpc, web = _free_port(), _free_port()
+    out = tmp_path / "served.rrd"
+    sink = RerunSink(RerunConfig(), RerunOutputs(save=out, serve=True, grpc_port=grpc, web_port=web, memory_limit="256MB"))
+    sink.on_start(_start(tmp_path))
+    try:
+        assert _accepts("127.0.0.1", grpc) and _accepts("127.0.0.1", web)
+        assert sink.served_url == web_viewer_url(web, f"rerun+http://127.0.0.1:{grpc}/proxy")
+        try:
+            outside = [a for a in socket.gethostbyname_ex(socket.gethostname())[2] if not a.startswith("127.")]
+        except OSError:
+            outside = []
+        for address in outside:  # not reachable from another interface
+            assert not _accepts(address, grpc) and not _accepts(address, web)
+    finally:
+        sink.close()  # without on_finish: an aborted run; the server must go away all the same
+    assert not _accepts("127.0.0.1", grpc) and not _accepts("127.0.0.1", web)
+    assert not out.exists()
