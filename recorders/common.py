@@ -540,11 +540,16 @@ def write_log(
     progress: ProgressCallback | None = None,
     started: float | None = None,
     prefetch: int = 4,
+    image_odometry: Callable[[np.ndarray | None, np.ndarray | None], Pose2D] | None = None,
 ) -> RecordStats:
     """Write ``frames`` (and candidates/labels at their query frames) through the one log writer.
 
     Images are loaded ``prefetch`` frames ahead on a small thread pool (decoding and rectifying in
     OpenCV release the GIL), while the writer encodes in this thread.
+
+    ``image_odometry(left, right)``, when given, computes each frame's odometry from its loaded
+    images, in frame order (``--vo``: :class:`lcv_replay.vo.log_vo.ImageOdometry`), instead of
+    ``frame.odom``.
     """
     from concurrent.futures import ThreadPoolExecutor
 
@@ -589,7 +594,8 @@ def write_log(
                 left, right = pending.pop(i).result()
             else:
                 left, right = None, None
-            writer.write_frame(i, frame.stamp_ns, left=left, right=right, odom=frame.odom, ground_truth=frame.ground_truth)
+            odom = frame.odom if image_odometry is None else image_odometry(left, right)
+            writer.write_frame(i, frame.stamp_ns, left=left, right=right, odom=odom, ground_truth=frame.ground_truth)
             for cand in by_query.get(i, ()):
                 writer.write_loop_candidate(cand, frame.stamp_ns)
             for query, match in labels_by_query.get(i, ()):
@@ -605,6 +611,6 @@ def write_log(
         size_bytes=out_path.stat().st_size,
         elapsed_s=time.perf_counter() - started,
         has_images=has_images,
-        has_odometry=any(f.odom is not None for f in frames[:1]),
+        has_odometry=image_odometry is not None or any(f.odom is not None for f in frames[:1]),
         has_ground_truth=any(f.ground_truth is not None for f in frames),
     )

@@ -229,6 +229,7 @@ class EurocOptions:
         ground_truth_tolerance_ns: a frame takes the nearest ground-truth row within this.
         odometry_tolerance_s: TUM odometry stamps must be this close to the frames.
         start_frame, max_frames: the slice of (paired) frames to record.
+        vo: compute ``/odom`` with stereo visual odometry on the rectified images (:mod:`lcv_replay.vo`).
     """
 
     rectify: bool = True
@@ -242,8 +243,13 @@ class EurocOptions:
     max_frames: int | None = None
     image_format: ImageFormat = "png"
     jpeg_quality: int = 95
+    vo: bool = False
 
     def __post_init__(self) -> None:
+        if self.vo and self.odometry is not None:
+            raise RecorderError("--vo and --odometry are exclusive", fix="drop one: --vo computes the odometry from the images")
+        if self.vo and not self.rectify:
+            raise RecorderError("--vo needs rectified stereo pairs", fix="drop --no-rectify")
         if self.start_frame < 0 or (self.max_frames is not None and self.max_frames < 1):
             raise RecorderError("--start-frame must be >= 0 and --max-frames >= 1", fix="pass valid frame counts")
 
@@ -353,8 +359,10 @@ def load_euroc_sequence(source: str | Path, options: EurocOptions = EurocOptions
                 raise RecorderError(f"{len(missing)} of {len(stamps)} frames have no odometry pose within {options.odometry_tolerance_s} s (first: frame {missing[0]})", path=options.odometry, fix="TUM stamps are the image stamps in seconds")
             T = poses.T_world_sensor[index]
         odometry = project_to_planar(T)
+    elif options.vo:
+        log.info("odometry from stereo VO on the rectified pairs")
     else:
-        log.warning("no --odometry given: the log carries images and ground truth only (estimate odometry with 'lcv-replay vo')")
+        log.warning("no --odometry given: the log carries images and ground truth only (estimate odometry with --vo or 'lcv-replay vo')")
 
     return EurocSequence(mav0, name, stamps, left_images, right_images, calibration, rect, odometry, ground_truth, dropped)
 
@@ -408,4 +416,9 @@ def record_euroc(
         image_format=options.image_format,
         jpeg_quality=options.jpeg_quality,
     )
-    return write_log(out_path, header, frames, force=force, progress=progress, started=started)
+    image_odometry = None
+    if options.vo:
+        from lcv_replay.vo.log_vo import ImageOdometry
+
+        image_odometry = ImageOdometry(seq.calibration)
+    return write_log(out_path, header, frames, force=force, progress=progress, started=started, image_odometry=image_odometry)

@@ -75,6 +75,8 @@ class FolderOptions:
         rate_hz: frame rate for ``stamps="rate"`` (and the nominal rate otherwise).
         max_gap_ns: largest gap between poses (or from a frame to a pose) bridged by interpolation;
             ``None`` = three median frame periods.
+        vo: compute ``/odom`` with stereo visual odometry on the images (needs ``right`` and
+            ``calibration``); an ``odometry.csv`` in ``SOURCE`` then only gives stamps.
     """
 
     left: Path | None = None
@@ -88,8 +90,11 @@ class FolderOptions:
     dataset: str | None = None
     image_format: ImageFormat = "png"
     jpeg_quality: int = 95
+    vo: bool = False
 
     def __post_init__(self) -> None:
+        if self.vo and self.odometry is not None:
+            raise RecorderError("--vo and --odometry are exclusive", fix="drop one: --vo computes the odometry from the images")
         if self.stamps not in ("auto", "names", "odometry", "rate"):
             raise RecorderError(f"--stamps {self.stamps!r} is unknown", fix="use auto, names, odometry or rate")
         if self.rate_hz is not None and not self.rate_hz > 0:
@@ -221,7 +226,15 @@ def record_folder(
     odom = read_planar_csv(odom_path) if odom_path is not None else None
     gt = read_planar_csv(gt_path) if gt_path is not None else None
     stamps, how = _frame_stamps(left, odom, options, left_dir)
-    if odom is None:
+    if options.vo:
+        if right is None:
+            raise RecorderError("stereo is required: --vo needs right images", path=src or left_dir, fix="pass --right DIR (or put the images in SOURCE/right)")
+        if calib_path is None:
+            raise RecorderError("--vo needs the stereo calibration", path=src or left_dir, fix="pass --calibration FILE (fx, fy, cx, cy, baseline_m)")
+        if odom is not None:
+            log.info("--vo: %s gives the frame stamps only; the odometry comes from stereo VO", odom_path)
+        odom = None
+    elif odom is None:
         log.warning("no odometry CSV: the log carries images%s only", " and ground truth" if gt else "")
 
     period = float(np.median(np.diff(stamps))) if len(stamps) > 1 else 1e8
@@ -258,7 +271,12 @@ def record_folder(
         image_format=options.image_format,
         jpeg_quality=options.jpeg_quality,
     )
-    return write_log(out_path, header, frames, force=force, progress=progress, started=started)
+    image_odometry = None
+    if options.vo:
+        from lcv_replay.vo.log_vo import ImageOdometry
+
+        image_odometry = ImageOdometry(calibration)
+    return write_log(out_path, header, frames, force=force, progress=progress, started=started, image_odometry=image_odometry)
 
 
 def _frame_stamps(left: list[Path], odom: tuple[np.ndarray, np.ndarray] | None, options: FolderOptions, left_dir: Path) -> tuple[np.ndarray, str]:

@@ -73,6 +73,7 @@ class KittiOptions:
         stamp_tolerance_s: TUM odometry stamps must be this close to ``times.txt``.
         start_stamp_ns: added to ``times.txt`` (KITTI times start at 0).
         image_format, jpeg_quality: how the writer encodes the images.
+        vo: compute ``/odom`` with stereo visual odometry on the images (:mod:`lcv_replay.vo`).
     """
 
     sequence: str | None = None
@@ -87,8 +88,11 @@ class KittiOptions:
     start_stamp_ns: int = 0
     image_format: ImageFormat = "png"
     jpeg_quality: int = 95
+    vo: bool = False
 
     def __post_init__(self) -> None:
+        if self.vo and self.odometry is not None:
+            raise RecorderError("--vo and --odometry are exclusive", fix="drop one: --vo computes the odometry from the images")
         if self.start_frame < 0:
             raise RecorderError(f"--start-frame {self.start_frame} is negative", fix="pass a frame index >= 0")
         if self.max_frames is not None and self.max_frames < 1:
@@ -198,8 +202,10 @@ def load_kitti_sequence(source: str | Path, options: KittiOptions = KittiOptions
     odometry = ground_truth = None
     if options.odometry is not None:
         odometry = _planar_poses(Path(options.odometry), options.odometry_format, times_s, n_all, options.stamp_tolerance_s, "odometry")
+    elif options.vo:
+        log.info("odometry from stereo VO on the %s pair", "colour" if options.color else "grey")
     else:
-        log.warning("no --odometry given: the log carries images%s only (estimate odometry with 'lcv-replay vo')", " and ground truth" if options.ground_truth or options.auto_ground_truth else "")
+        log.warning("no --odometry given: the log carries images%s only (estimate odometry with --vo or 'lcv-replay vo')", " and ground truth" if options.ground_truth or options.auto_ground_truth else "")
     gt_path = options.ground_truth
     if gt_path is None and options.auto_ground_truth:
         candidate = folder.parent.parent / "poses" / f"{name}.txt"
@@ -284,7 +290,12 @@ def record_kitti(
         image_format=options.image_format,
         jpeg_quality=options.jpeg_quality,
     )
-    return write_log(out_path, header, frames, force=force, progress=progress, started=started)
+    image_odometry = None
+    if options.vo:
+        from lcv_replay.vo.log_vo import ImageOdometry
+
+        image_odometry = ImageOdometry(seq.calibration)
+    return write_log(out_path, header, frames, force=force, progress=progress, started=started, image_odometry=image_odometry)
 
 
 __all__ = ["KittiOptions", "KittiSequence", "load_kitti_sequence", "read_calib", "record_kitti"]

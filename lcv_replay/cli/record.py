@@ -143,6 +143,7 @@ def record_kitti_command(
     color: bool = typer.Option(False, "--color", help="Record image_2/image_3 (P2/P3) instead of the grey pair."),
     start_frame: int = START_FRAME_OPTION,
     max_frames: Optional[int] = MAX_FRAMES_OPTION,
+    vo: bool = typer.Option(False, "--vo", help="Compute /odom with stereo visual odometry on the images (instead of --odometry)."),
     stamp_tolerance_s: float = typer.Option(0.01, "--stamp-tolerance", help="TUM stamps must match times.txt within this many seconds."),
     image_format: ImageFormatChoice = IMAGE_FORMAT_OPTION,
     jpeg_quality: int = JPEG_QUALITY_OPTION,
@@ -162,6 +163,7 @@ def record_kitti_command(
         start_frame=start_frame,
         max_frames=max_frames,
         stamp_tolerance_s=stamp_tolerance_s,
+        vo=vo,
         image_format=image_format.value,  # type: ignore[arg-type]
         jpeg_quality=jpeg_quality,
     )
@@ -175,6 +177,7 @@ def record_euroc_command(
     rectify: bool = typer.Option(True, "--rectify/--no-rectify", help="Rectify the stereo pair (cv2.stereoRectify) and write the rectified calibration; --no-rectify writes raw distorted images."),
     odometry: Optional[Path] = typer.Option(None, "--odometry", help="Left-camera odometry (TUM with stamps in seconds, or KITTI format, one line per frame)."),
     odometry_format: PoseFormatChoice = typer.Option(PoseFormatChoice.auto, "--odometry-format", help="auto, kitti or tum."),
+    vo: bool = typer.Option(False, "--vo", help="Compute /odom with stereo visual odometry on the images (instead of --odometry)."),
     ground_truth: bool = typer.Option(True, "--ground-truth/--no-ground-truth", help="Use mav0/state_groundtruth_estimate0 when present."),
     stereo_tolerance_ns: int = typer.Option(1_000_000, "--stereo-tolerance-ns", min=0, help="Left/right stamps closer than this form a pair."),
     start_frame: int = START_FRAME_OPTION,
@@ -194,6 +197,7 @@ def record_euroc_command(
         ground_truth=ground_truth,
         stereo_tolerance_ns=stereo_tolerance_ns,
         start_frame=start_frame,
+        vo=vo,
         max_frames=max_frames,
         image_format=image_format.value,  # type: ignore[arg-type]
         jpeg_quality=jpeg_quality,
@@ -217,6 +221,7 @@ def record_folder_command(
     odometry: Optional[Path] = typer.Option(None, "--odometry", help="Planar odometry CSV: timestamp_ns,x_m,y_m,yaw_rad (default SOURCE/odometry.csv)."),
     ground_truth: Optional[Path] = typer.Option(None, "--ground-truth", help="Planar ground-truth CSV, same format (default SOURCE/ground_truth.csv)."),
     calibration: Optional[Path] = typer.Option(None, "--calibration", help="Rectified stereo calibration, YAML or JSON: fx, fy, cx, cy, baseline_m [, width, height, distortion]."),
+    vo: bool = typer.Option(False, "--vo", help="Compute /odom with stereo visual odometry on the images (instead of --odometry)."),
     stamps: StampSourceChoice = typer.Option(StampSourceChoice.auto, "--stamps", help="Frame stamps from ns file names, odometry rows, or --rate-hz."),
     rate_hz: Optional[float] = typer.Option(None, "--rate-hz", help="Frame rate for --stamps rate."),
     max_gap_ns: Optional[int] = typer.Option(None, "--max-gap-ns", min=1, help="Largest pose gap bridged by interpolation (default: 3 frame periods)."),
@@ -239,6 +244,7 @@ def record_folder_command(
         rate_hz=rate_hz,
         max_gap_ns=max_gap_ns,
         dataset=dataset,
+        vo=vo,
         image_format=image_format.value,  # type: ignore[arg-type]
         jpeg_quality=jpeg_quality,
     )

@@ -26,7 +26,7 @@ from lcv_replay.log import messages
 from lcv_replay.log.reader import LogReader, open_log
 from lcv_replay.records import Frame, Pose2D, StereoCalibration
 from lcv_replay.vo.config import VoConfig
-from lcv_replay.vo.stereo_vo import VoResult, VoStep, check_calibration, check_image_size, run_vo, to_grey
+from lcv_replay.vo.stereo_vo import StereoVoTracker, VoResult, VoStep, check_calibration, check_image_size, run_vo, to_grey
 
 logger = logging.getLogger(__name__)
 
@@ -133,6 +133,31 @@ def camera_mount_of(reader: LogReader) -> np.ndarray | None:
         logger.warning("%s: ignoring the unreadable lcv metadata T_body_camera %r", reader.path, text)
         return None
     return T
+
+
+class ImageOdometry:
+    """Planar odometry from stereo images, one call per frame: the recorders' ``--vo`` hook.
+
+    ``hook(left, right)`` returns the cumulative ``T_odom_base`` of the frame (see
+    :meth:`StereoVoTracker.process`); fallback frames are counted on :attr:`tracker` and the first
+    one is reported with a warning.
+    """
+
+    def __init__(self, calibration: StereoCalibration | None, config: VoConfig | None = None, *, T_body_camera: np.ndarray | None = None):
+        self.tracker = StereoVoTracker(check_calibration(calibration, where="the stereo calibration"), config, T_body_camera=T_body_camera)
+        self._warned = False
+
+    def __call__(self, left: np.ndarray | None, right: np.ndarray | None) -> Pose2D:
+        if left is None or right is None:
+            raise OdometryError("stereo is required: --vo needs a left and a right image for every frame", fix=RIGHT_IMAGE_HINT)
+        step = self.tracker.process(left, right)
+        if step.quality.fallback and not self._warned:
+            self._warned = True
+            logger.warning(
+                "stereo VO: frame %d is %s, using a constant-velocity guess (further fallbacks are counted, not reported)",
+                step.index, step.quality.status.value,
+            )
+        return step.T_odom_base
 
 
 @dataclass(frozen=True)
