@@ -31,14 +31,16 @@ class ConstraintState(IntEnum):
         return self in (ConstraintState.ACCEPTED, ConstraintState.ACCEPTED_FALSE)
 
 
-#: Label and RGB colour of each state, for the annotation context (legend) of ``/constraints``.
-STATE_STYLE: dict[ConstraintState, tuple[str, tuple[int, int, int]]] = {
-    ConstraintState.PENDING: ("pending (not judged yet)", (200, 200, 200)),
-    ConstraintState.ACCEPTED: ("accepted", (40, 200, 80)),
-    ConstraintState.REJECTED: ("rejected", (120, 120, 150)),
-    ConstraintState.ACCEPTED_FALSE: ("accepted but truly false", (240, 30, 30)),
-    ConstraintState.REJECTED_TRUE: ("rejected but truly true (missed)", (250, 170, 30)),
-    ConstraintState.REJECTED_FALSE: ("rejected, truly false", (150, 70, 90)),
+#: Label and RGBA colour of each state, for the annotation context (legend) of ``/constraints``.
+#: What needs attention is opaque (accepted, wrongly accepted, missed); the rest is faint, so that
+#: thousands of correctly rejected retrieval candidates do not hide the map.
+STATE_STYLE: dict[ConstraintState, tuple[str, tuple[int, int, int, int]]] = {
+    ConstraintState.PENDING: ("pending (not judged yet)", (220, 220, 220, 90)),
+    ConstraintState.ACCEPTED: ("accepted", (40, 200, 80, 255)),
+    ConstraintState.REJECTED: ("rejected", (120, 120, 150, 70)),
+    ConstraintState.ACCEPTED_FALSE: ("accepted but truly false", (240, 30, 30, 255)),
+    ConstraintState.REJECTED_TRUE: ("rejected but truly true (missed)", (250, 170, 30, 255)),
+    ConstraintState.REJECTED_FALSE: ("rejected, truly false", (170, 80, 110, 50)),
 }
 
 

@@ -64,6 +64,8 @@ TREE_MAX_NODES = 5_000  # the generation tree keeps the newest nodes beyond this
 JPEG_QUALITY = 85
 DETERMINISTIC_FLUSH_TICK_S = 1e6  # "never": file-only recordings flush on size and at explicit points
 
+#: Drawing priority of each ConstraintState (index = state value): what needs attention on top.
+DRAW_PRIORITY = np.array([0, 2, 0, 4, 3, 0])
 _LINE = rr.Radius.ui_points(1.0)
 _THICK = rr.Radius.ui_points(2.5)
 _RANK1_COLOR = (255, 200, 0)
@@ -413,19 +415,23 @@ class RerunSink(BaseSink):
         self._judged = len(constraints)
         states = constraint_states(len(constraints), step.accepted_constraint_ids, self._truth)
         if constraints:
-            pairs = np.array([(c.query_frame, c.match_frame) for c in constraints], dtype=np.int64)
+            # Instances in drawing order: faint states first, wrong acceptances last (on top).
+            order = np.argsort(DRAW_PRIORITY[states], kind="stable")
+            picked = [constraints[i] for i in order]
+            drawn = states[order]
+            pairs = np.array([(c.query_frame, c.match_frame) for c in picked], dtype=np.int64)
             positions = self._map.poses()[:, :2]
             # Negative radii are UI points (rr.Radius.ui_points); wrong accepted loops drawn thicker.
-            radii = -np.where(states == ConstraintState.ACCEPTED_FALSE, 2.5, 1.0).astype(np.float32)
+            radii = -np.where(drawn == ConstraintState.ACCEPTED_FALSE, 2.5, 1.0).astype(np.float32)
             rec.log(
                 bp.CONSTRAINTS_SEGMENTS,
-                rr.LineStrips2D(segments(positions, pairs), radii=radii, class_ids=states.astype(np.uint16), show_labels=False),
+                rr.LineStrips2D(segments(positions, pairs), radii=radii, class_ids=drawn.astype(np.uint16), show_labels=False),
                 rr.AnyValues(
-                    constraint_id=np.array([c.id for c in constraints], dtype=np.int64),
+                    constraint_id=np.array([c.id for c in picked], dtype=np.int64),
                     query_frame=pairs[:, 0],
                     match_frame=pairs[:, 1],
-                    similarity=np.array([c.candidate.similarity for c in constraints], dtype=np.float64),
-                    state=[STATE_STYLE[ConstraintState(int(s))][0] for s in states],
+                    similarity=np.array([c.candidate.similarity for c in picked], dtype=np.float64),
+                    state=[STATE_STYLE[ConstraintState(int(s))][0] for s in drawn],
                 ),
             )
         rec.log(bp.CONSTRAINTS_PENDING, rr.Clear(recursive=False))
