@@ -77,17 +77,15 @@ def demo_command(
     from lcv_replay.config import ReplayConfig
     from lcv_replay.fileio import check_output_path
     from lcv_replay.replay import ReplayOptions, replay
+    from lcv_replay.sinks.config import RerunOutputs
 
     check_output_path(save, force=True)
     if summary_json is not None:
         check_output_path(summary_json, force=True)
     log_path = ensure_demo_log(frames, seed, DEMO_WIDTH_PX, DEMO_HEIGHT_PX, rerecord=rerecord, quiet=quiet)
     config = ReplayConfig()
-    sinks = build_sinks(
-        log_path=log_path, rerun_config=config.rerun, save=save, no_save=False, no_rerun=False, spawn=spawn,
-        connect=None, serve=False, grpc_port=9876, web_port=9090, memory_limit=None, summary_json=summary_json,
-        quiet=quiet,
-    )
+    outputs = RerunOutputs(save=save, spawn=spawn)
+    sinks = build_sinks(rerun_config=config.rerun, outputs=outputs, summary_json=summary_json, quiet=quiet)
     summary = replay(ReplayOptions(log_path=log_path, config=config, method=method, seed=seed), sinks)
     typer.echo(f"\nopen the recording with:  rerun {save}")
     if summary.interrupted:

@@ -28,24 +28,13 @@ def default_save_path(log_path: Path) -> Path:
     return Path.cwd() / beside.name
 
 
-def build_sinks(
-    *,
-    log_path: Path,
-    rerun_config,
-    save: Optional[Path],
-    no_save: bool,
-    no_rerun: bool,
-    spawn: bool,
-    connect: Optional[str],
-    serve: bool,
-    grpc_port: int,
-    web_port: int,
-    memory_limit: Optional[str],
-    summary_json: Optional[Path],
-    quiet: bool,
-):
-    """The sinks of one replay, in call order: progress, Rerun, summary, (serve-until-Ctrl-C)."""
-    from lcv_replay.sinks.null import NullSink
+def build_sinks(*, rerun_config, outputs, summary_json: Optional[Path], quiet: bool) -> list:
+    """The sinks of one replay, in call order: progress, Rerun, summary, (serve until Ctrl-C).
+
+    Args:
+        rerun_config: the config's ``[rerun]`` section.
+        outputs: a :class:`~lcv_replay.sinks.config.RerunOutputs`, or ``None`` for no Rerun output.
+    """
     from lcv_replay.sinks.summary import SummarySink
 
     sinks: list = []
@@ -54,25 +43,15 @@ def build_sinks(
 
         sinks.append(ProgressSink())
     rerun_sink = None
-    if not no_rerun:
-        from lcv_replay.sinks.rerun_sink import RerunOutputs, RerunSink
+    if outputs is not None and outputs.any:
+        from lcv_replay.sinks.rerun_sink import RerunSink
 
-        outputs = RerunOutputs(
-            save=None if no_save else (save if save is not None else default_save_path(log_path)),
-            spawn=spawn,
-            connect=connect,
-            serve=serve,
-            grpc_port=grpc_port,
-            web_port=web_port,
-            memory_limit=memory_limit,
-        )
-        if outputs.any:
-            rerun_sink = RerunSink(rerun_config, outputs)
-            sinks.append(rerun_sink)
+        rerun_sink = RerunSink(rerun_config, outputs)
+        sinks.append(rerun_sink)
     sinks.append(SummarySink(stream=sys.stdout, json_path=summary_json))
-    if rerun_sink is not None and serve:
+    if rerun_sink is not None and outputs.serve:
         sinks.append(_ServeUntilInterrupted(rerun_sink))
-    return sinks or [NullSink()]
+    return sinks
 
 
 class _ServeUntilInterrupted:
@@ -109,7 +88,7 @@ class _ServeUntilInterrupted:
 
 @app.command("replay", hidden=True, help="Replay LOG.mcap through retrieval and incremental verification, logging every step to Rerun.")
 def replay_command(
-    log: Path = typer.Argument(..., help="An lcv-replay MCAP log (written by 'lcv-replay record')."),
+    log: Path = typer.Argument(..., metavar="LOG.mcap", help="An lcv-replay MCAP log (written by 'lcv-replay record')."),
     rate: str = typer.Option("max", "--rate", "-r", help="Playback rate: 1.0 = real time by the log's timestamps; 'max' = as fast as possible."),
     start_offset: float = typer.Option(0.0, "--start-offset", help="Start this many seconds into the log."),
     duration: Optional[float] = typer.Option(None, "--duration", help="Replay only this many seconds."),
@@ -117,7 +96,7 @@ def replay_command(
     constraints: Optional[ConstraintChoice] = typer.Option(None, "--constraints", case_sensitive=False, help="Loop constraints from our retrieval on the images, the log's /loop_candidates, or both (default: log if it has candidates, else images)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="TOML config over the paper defaults (unknown keys are refused)."),
     seed: Optional[int] = typer.Option(None, "--seed", help="Seed of retrieval and verification (default: the config's)."),
-    save: Optional[Path] = typer.Option(None, "--save", help="Write the Rerun recording here (default: LOG.rrd next to the log, or in the current folder if that one is not writable)."),
+    save: Optional[Path] = typer.Option(None, "--save", help="Write the Rerun recording here, overwriting it (default: LOG.rrd next to the log, or in the current folder if that one is not writable)."),
     no_save: bool = typer.Option(False, "--no-save", help="Write no .rrd (with --spawn/--connect/--serve)."),
     spawn: bool = typer.Option(False, "--spawn", help="Open a Rerun viewer and stream to it."),
     connect: Optional[str] = typer.Option(None, "--connect", help="Stream to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy."),
@@ -154,21 +133,16 @@ def replay_command(
         from lcv_replay.errors import LogFormatError
 
         raise LogFormatError("file not found", path=log, fix="check the path")
-    sinks = build_sinks(
-        log_path=log,
-        rerun_config=replay_config.rerun,
-        save=save,
-        no_save=no_save,
-        no_rerun=no_rerun,
-        spawn=spawn,
-        connect=connect,
-        serve=serve,
-        grpc_port=grpc_port,
-        web_port=web_port,
-        memory_limit=memory_limit,
-        summary_json=summary_json,
-        quiet=quiet,
-    )
+    outputs = None
+    if not no_rerun:
+        from lcv_replay.sinks.config import RerunOutputs
+
+        outputs = RerunOutputs(
+            save=None if no_save else (save if save is not None else default_save_path(log)),
+            spawn=spawn, connect=connect, serve=serve, grpc_port=grpc_port, web_port=web_port,
+            memory_limit=memory_limit,
+        )
+    sinks = build_sinks(rerun_config=replay_config.rerun, outputs=outputs, summary_json=summary_json, quiet=quiet)
     summary = replay(options, sinks)
     if summary.interrupted:
         raise typer.Exit(130)

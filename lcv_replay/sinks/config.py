@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 
 @dataclass(frozen=True)
@@ -19,3 +20,34 @@ class RerunConfig:
 
         require(self.image_every >= 0, "rerun.image_every", self.image_every, "an integer >= 0")
         require(self.top_hypotheses >= 1, "rerun.top_hypotheses", self.top_hypotheses, "an integer >= 1")
+
+
+@dataclass(frozen=True)
+class RerunOutputs:
+    """Where a recording goes (CLI options, not config); several can be combined (tee).
+
+    Attributes:
+        save: the .rrd to write (``None``: no file); overwritten if it exists.
+        spawn: start a local viewer and stream to it.
+        connect: URL of a running viewer (``rerun+http://127.0.0.1:9876/proxy``).
+        serve: host a gRPC server and the web viewer, both bound to 127.0.0.1.
+        grpc_port, web_port: ports for ``spawn`` (gRPC) and ``serve``.
+        memory_limit: viewer / server memory limit (``"25%"``, ``"4GB"``); ``None``: the config's.
+    """
+
+    save: Path | None = None
+    spawn: bool = False
+    connect: str | None = None
+    serve: bool = False
+    grpc_port: int = 9876
+    web_port: int = 9090
+    memory_limit: str | None = None
+
+    @property
+    def any(self) -> bool:
+        return self.save is not None or self.spawn or self.connect is not None or self.serve
+
+    @property
+    def live(self) -> bool:
+        """Whether a viewer watches while the replay runs."""
+        return self.spawn or self.connect is not None or self.serve

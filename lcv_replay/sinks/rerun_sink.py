@@ -22,7 +22,6 @@ import sys
 import time
 import uuid
 from collections import defaultdict
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 from urllib.parse import quote
@@ -31,6 +30,7 @@ import numpy as np
 import rerun as rr
 
 from lcv_replay.config import RerunConfig
+from lcv_replay.sinks.config import RerunOutputs
 from lcv_replay.errors import OutputError
 from lcv_replay.fileio import check_output_path
 from lcv_replay.sinks import blueprint as bp
@@ -69,32 +69,6 @@ DRAW_PRIORITY = np.array([0, 2, 0, 4, 3, 0])
 _LINE = rr.Radius.ui_points(1.0)
 _THICK = rr.Radius.ui_points(2.5)
 _RANK1_COLOR = (255, 200, 0)
-
-
-@dataclass(frozen=True)
-class RerunOutputs:
-    """Where the recording goes; several can be combined.
-
-    Attributes:
-        save: the .rrd to write (``None``: no file).
-        spawn: start a local viewer and stream to it.
-        connect: URL of a running viewer (``rerun+http://127.0.0.1:9876/proxy``).
-        serve: host a gRPC server and the web viewer on 127.0.0.1.
-        grpc_port, web_port: ports for ``--spawn`` (gRPC) and ``--serve``.
-        memory_limit: viewer / server memory limit (``"25%"``, ``"4GB"``); ``None``: the config's.
-    """
-
-    save: Path | None = None
-    spawn: bool = False
-    connect: str | None = None
-    serve: bool = False
-    grpc_port: int = 9876
-    web_port: int = 9090
-    memory_limit: str | None = None
-
-    @property
-    def any(self) -> bool:
-        return self.save is not None or self.spawn or self.connect is not None or self.serve
 
 
 class _Columns:
@@ -231,8 +205,7 @@ class RerunSink(BaseSink):
         # No automatic properties: their start time is the wall clock; ours is the log's (below).
         # A file-only recording is batched by size alone (no wall-clock flush tick), so that the same
         # log, config and seed give the same chunks; live viewers keep Rerun's default tick.
-        live = self.outputs.spawn or self.outputs.connect is not None or self.outputs.serve
-        batcher = None if live else rr.ChunkBatcherConfig(flush_tick=DETERMINISTIC_FLUSH_TICK_S)
+        batcher = None if self.outputs.live else rr.ChunkBatcherConfig(flush_tick=DETERMINISTIC_FLUSH_TICK_S)
         rec = rr.RecordingStream(APPLICATION_ID, recording_id=self._recording_id, send_properties=False, batcher_config=batcher)
         rec.set_log_time_enabled(False)  # our log_time is the MCAP's, not the wall clock
         rec.set_log_tick_enabled(False)

@@ -20,7 +20,8 @@ from lcv_replay.replay import DEFAULT_METHOD, ReplayOptions, StopToken, replay
 from lcv_replay.sinks import blueprint as bp
 from lcv_replay.sinks.base import SUMMARY_KEYS
 from lcv_replay.sinks.layout import ConstraintState
-from lcv_replay.sinks.rerun_sink import RerunOutputs, RerunSink
+from lcv_replay.sinks.config import RerunOutputs
+from lcv_replay.sinks.rerun_sink import RerunSink
 from lcv_replay.sinks.summary import SummarySink, read_summary_json
 from tests.replay.helpers import FAST_CONFIG_TOML, column, last_row, read_rrd, record_square_route, series, write_config
 

@@ -18,7 +18,8 @@ from lcv_replay.cli.demo import DEMO_HEIGHT_PX, DEMO_WIDTH_PX, demo_log_path, en
 from lcv_replay.config import load_config
 from lcv_replay.replay import ReplayOptions, replay
 from lcv_replay.sinks import blueprint as bp
-from lcv_replay.sinks.rerun_sink import RerunOutputs, RerunSink
+from lcv_replay.sinks.config import RerunOutputs
+from lcv_replay.sinks.rerun_sink import RerunSink
 from lcv_replay.sinks.summary import SummarySink
 from tests.replay.helpers import column, last_row, read_rrd, write_config
 

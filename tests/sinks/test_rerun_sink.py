@@ -19,7 +19,8 @@ from lcv_replay.records import Frame, ImageRef, LoopCandidate, Pose2D
 from lcv_replay.sinks import blueprint as bp
 from lcv_replay.sinks.base import FrameUpdate, RetrievalUpdate, RunStart, RunSummary, StepMetrics, StepUpdate
 from lcv_replay.sinks.layout import ConstraintState
-from lcv_replay.sinks.rerun_sink import RerunOutputs, RerunSink, web_viewer_url
+from lcv_replay.sinks.config import RerunOutputs
+from lcv_replay.sinks.rerun_sink import RerunSink, web_viewer_url
 from lcv_replay.verification.base import Constraint, HypothesisSummary, VerifierStep
 from tests.replay.helpers import column, last_row, read_rrd, series
 

@@ -19,7 +19,8 @@ import pytest
 
 from lcv_replay.config import load_config
 from lcv_replay.replay import ReplayOptions, replay
-from lcv_replay.sinks.rerun_sink import RerunOutputs, RerunSink
+from lcv_replay.sinks.config import RerunOutputs
+from lcv_replay.sinks.rerun_sink import RerunSink
 from tests.replay.helpers import FAST_CONFIG_TOML, record_square_route, write_config
 
 EXPECTED_VIEWS = {
