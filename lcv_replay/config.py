@@ -23,6 +23,7 @@ from lcv_replay.errors import ConfigError
 from lcv_replay.retrieval.config import RetrievalConfig
 from lcv_replay.sinks.config import RerunConfig
 from lcv_replay.verification.config import VerificationConfig
+from lcv_replay.vo.config import VoConfig
 
 T = TypeVar("T")
 
@@ -34,6 +35,7 @@ class ReplayConfig:
     retrieval: RetrievalConfig = field(default_factory=RetrievalConfig)
     verification: VerificationConfig = field(default_factory=VerificationConfig)
     rerun: RerunConfig = field(default_factory=RerunConfig)
+    vo: VoConfig = field(default_factory=VoConfig)  # stereo VO ('lcv-replay vo', record --vo); not used by the replay
 
 
 def require(condition: bool, key: str, value: Any, expected: str) -> None:

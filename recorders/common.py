@@ -529,6 +529,15 @@ def nominal_rate_hz(stamps_ns: np.ndarray, default: float = 10.0) -> float:
     return 1e9 / period if period > 0 else default
 
 
+def vo_hook(enabled: bool, calibration: StereoCalibration | None) -> Callable[[np.ndarray | None, np.ndarray | None], Pose2D] | None:
+    """The ``--vo`` odometry hook of :func:`write_log` (stereo VO on the loaded images), or ``None``."""
+    if not enabled:
+        return None
+    from lcv_replay.vo.log_vo import ImageOdometry
+
+    return ImageOdometry(calibration)
+
+
 def write_log(
     out_path: str | Path,
     header: LogHeader,

@@ -63,6 +63,7 @@ from recorders.common import (
     require_path,
     seconds_to_ns,
     transforms_from_quaternions,
+    vo_hook,
     write_log,
 )
 
@@ -416,9 +417,4 @@ def record_euroc(
         image_format=options.image_format,
         jpeg_quality=options.jpeg_quality,
     )
-    image_odometry = None
-    if options.vo:
-        from lcv_replay.vo.log_vo import ImageOdometry
-
-        image_odometry = ImageOdometry(seq.calibration)
-    return write_log(out_path, header, frames, force=force, progress=progress, started=started, image_odometry=image_odometry)
+    return write_log(out_path, header, frames, force=force, progress=progress, started=started, image_odometry=vo_hook(options.vo, seq.calibration))

@@ -54,6 +54,7 @@ from recorders.common import (
     options_config,
     read_image,
     require_path,
+    vo_hook,
     write_log,
 )
 
@@ -271,12 +272,7 @@ def record_folder(
         image_format=options.image_format,
         jpeg_quality=options.jpeg_quality,
     )
-    image_odometry = None
-    if options.vo:
-        from lcv_replay.vo.log_vo import ImageOdometry
-
-        image_odometry = ImageOdometry(calibration)
-    return write_log(out_path, header, frames, force=force, progress=progress, started=started, image_odometry=image_odometry)
+    return write_log(out_path, header, frames, force=force, progress=progress, started=started, image_odometry=vo_hook(options.vo, calibration))
 
 
 def _frame_stamps(left: list[Path], odom: tuple[np.ndarray, np.ndarray] | None, options: FolderOptions, left_dir: Path) -> tuple[np.ndarray, str]:

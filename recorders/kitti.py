@@ -49,6 +49,7 @@ from recorders.common import (
     read_pose_file,
     require_path,
     seconds_to_ns,
+    vo_hook,
     write_log,
 )
 
@@ -290,12 +291,7 @@ def record_kitti(
         image_format=options.image_format,
         jpeg_quality=options.jpeg_quality,
     )
-    image_odometry = None
-    if options.vo:
-        from lcv_replay.vo.log_vo import ImageOdometry
-
-        image_odometry = ImageOdometry(seq.calibration)
-    return write_log(out_path, header, frames, force=force, progress=progress, started=started, image_odometry=image_odometry)
+    return write_log(out_path, header, frames, force=force, progress=progress, started=started, image_odometry=vo_hook(options.vo, seq.calibration))
 
 
 __all__ = ["KittiOptions", "KittiSequence", "load_kitti_sequence", "read_calib", "record_kitti"]

@@ -122,7 +122,7 @@ def bench_vo_command(
     end_to_end: bool = typer.Option(False, "--end-to-end/--no-end-to-end", help="Also record the demo with simulated and VO odometry and replay both (minutes)."),
     e2e_frames: int = typer.Option(1500, "--e2e-frames", min=50, help="Frames of each end-to-end recording."),
     replay_config: Optional[Path] = typer.Option(None, "--replay-config", help="TOML config of the end-to-end replays (default: the paper defaults)."),
-    vo_config: Optional[Path] = typer.Option(None, "--config", help="VO parameters, TOML (keys of VoConfig, optionally under [vo])."),
+    vo_config: Optional[Path] = typer.Option(None, "--config", help="TOML config; its [vo] table (keys of VoConfig) applies."),
     workdir: Path = typer.Option(Path("bench-out"), "--workdir", help="Folder for the end-to-end logs."),
     output: Path = typer.Option(Path("bench-out/vo_bench.json"), "-o", "--output", help="JSON results (overwritten)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),

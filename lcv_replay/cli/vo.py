@@ -7,64 +7,20 @@ OpenCV and the VO modules are imported inside the command so that ``--help`` sta
 
 from __future__ import annotations
 
-import contextlib
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Optional
 
 import typer
 
 from lcv_replay.cli.app import app
+from lcv_replay.cli.record import recording_progress
 
 
 def load_vo_config(path: Path | None):
-    """:class:`VoConfig` from a TOML file (keys at the top level or under ``[vo]``); defaults if ``None``."""
-    import tomllib
+    """The ``[vo]`` table of a TOML config (the one config tree, :class:`lcv_replay.config.ReplayConfig`)."""
+    from lcv_replay.config import load_config
 
-    from lcv_replay.config import from_dict
-    from lcv_replay.errors import ConfigError
-    from lcv_replay.vo.config import VoConfig
-
-    if path is None:
-        return VoConfig()
-    if not path.is_file():
-        raise ConfigError("VO config file not found", path=path, fix="pass an existing TOML file")
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"not valid TOML: {exc}", path=path, fix="fix the syntax") from None
-    if set(data) == {"vo"}:
-        return from_dict(VoConfig, data["vo"], where="vo", path=path)
-    return from_dict(VoConfig, data, path=path)
-
-
-@contextlib.contextmanager
-def vo_progress(total: int | None, *, quiet: bool) -> Iterator:
-    """Yield an ``on_step(step)`` callback drawing a rich progress bar on stderr (or ``None``)."""
-    if quiet:
-        yield None
-        return
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-    with Progress(
-        TextColumn("[bold]stereo VO"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("pairs, {task.fields[fallbacks]} fallback"),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        console=Console(stderr=True),
-        transient=True,
-    ) as bar:
-        task = bar.add_task("vo", total=total, fallbacks=0)
-        fallbacks = 0
-
-        def on_step(step) -> None:
-            nonlocal fallbacks
-            fallbacks += step.quality.fallback
-            bar.update(task, advance=1, fallbacks=fallbacks)
-
-        yield on_step
+    return load_config(path).vo
 
 
 def vo_summary_lines(result, ground_truth) -> list[str]:
@@ -97,7 +53,7 @@ def vo_summary_lines(result, ground_truth) -> list[str]:
 def vo_command(
     log: Path = typer.Argument(..., help="An lcv-replay MCAP log with stereo images and calibration."),
     out: Path = typer.Option(..., "--out", "-o", help="Output .mcap (written atomically; never the input)."),
-    config: Optional[Path] = typer.Option(None, "--config", help="VO parameters, TOML (keys of VoConfig, optionally under [vo])."),
+    config: Optional[Path] = typer.Option(None, "--config", help="TOML config; its [vo] table (keys of VoConfig) applies."),
     replace_odometry: bool = typer.Option(False, "--replace-odometry", help="Replace the log's existing /odom and /tf."),
     summary_json: Optional[Path] = typer.Option(None, "--json", help="Also write the run summary (per-frame quality included) as JSON."),
     force: bool = typer.Option(False, "--force", "-f", help="Overwrite OUT if it exists."),
@@ -114,7 +70,8 @@ def vo_command(
         check_output_path(summary_json, force=True)
     with open_log(log) as reader:
         frames, ground_truth = reader.info.frames, reader.ground_truth()
-    with vo_progress(frames, quiet=quiet) as on_step:
+    with recording_progress("stereo VO", quiet=quiet) as progress:
+        on_step = None if progress is None else (lambda step: progress(step.index + 1, frames))
         stats = add_vo_odometry(log, out, vo_config, force=force, replace_odometry=replace_odometry, on_step=on_step)
     if summary_json is not None:
         report = {
