@@ -115,6 +115,9 @@ class PaperModel:
     def forget(self, hypothesis_id: int) -> None:
         pass
 
+    def absorb(self, parent: Hypothesis, *, hypothesis_id: int, window: int) -> None:
+        return None
+
     def final_trajectory(self, top: Hypothesis, accepted_ids: tuple[int, ...]) -> np.ndarray:
         return top.trajectory(self.chain)
 
@@ -151,6 +154,8 @@ class PlusModel:
         self._z = np.zeros((0, 3))
         self._r = np.zeros((0, 3, 3))  # measurement covariances
         self._cond: dict[int, _Conditioning] = {}
+        self._chain_chi2: dict[int, float] = {0: 0.0}  # odometry chi-square of each hypothesis' solution
+        self._walk: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # per hypothesis: (poses, prefix sums)
 
     # ------------------------------------------------------------------ constraints
     def _sync(self) -> None:
@@ -175,22 +180,42 @@ class PlusModel:
         ]
 
     # ------------------------------------------------------------------ solving
-    def _solve_set(self, ids: tuple[int, ...], warm: Hypothesis, hypothesis_id: int) -> tuple[np.ndarray, np.ndarray, float]:
+    def _solve_set(self, ids: tuple[int, ...], warm: Hypothesis) -> tuple[np.ndarray, np.ndarray, float, float]:
+        """Solve the reduced graph of ``ids`` from ``warm``: ``(nodes, poses, chi2, odometry chi2)``."""
         nodes = np.unique(np.concatenate([[0], self._m[list(ids)], self._q[list(ids)]])).astype(np.int64)
         graph = pose_graph.build_reduced_graph(self.chain, nodes, self._factors(ids))
         initial = warm.poses_at(self.chain, nodes)
         solution = pose_graph.optimise_lm(graph, initial, keys=nodes, max_iterations=self.config.max_iterations)
-        return nodes, solution.poses, solution.chi2
+        a, b = nodes[:-1], nodes[1:]
+        steps = pose_graph.se2_between(self.chain.poses[a], self.chain.poses[b])
+        info = np.linalg.inv(self.chain.segment_covariance(a, b)) if len(a) else np.zeros((0, 3, 3))
+        idx = np.arange(len(nodes))
+        odometry = float(pose_graph.between_chi2(solution.poses, idx[:-1], idx[1:], steps, info).sum()) if len(a) else 0.0
+        return nodes, solution.poses, solution.chi2, odometry
 
-    def solve(self, parent: Hypothesis, constraint_ids: tuple[int, ...], *, hypothesis_id: int, window: int, added: int) -> Hypothesis:
+    def absorb(self, parent: Hypothesis, *, hypothesis_id: int, window: int) -> Hypothesis | None:
+        """The parent plus every constraint consistent with it, refined (new evidence)."""
+        self._sync()
+        all_ids = np.arange(len(self._m), dtype=np.int64)
+        ok = self.refinement(parent, all_ids)
+        members = np.zeros(len(all_ids), dtype=bool)
+        members[list(parent.constraint_ids)] = True
+        extra = np.flatnonzero(ok & ~members)
+        if len(extra) == 0:
+            return None
+        ids = tuple(parent.constraint_ids) + tuple(int(c) for c in extra)
+        return self.solve(parent, ids, hypothesis_id=hypothesis_id, window=window, added=None)
+
+    def solve(self, parent: Hypothesis, constraint_ids: tuple[int, ...], *, hypothesis_id: int, window: int, added: int | None) -> Hypothesis:
         self._sync()
         ids = tuple(constraint_ids)
-        nodes, poses, chi2 = self._solve_set(ids, parent, hypothesis_id)
+        nodes, poses, chi2, odometry = self._solve_set(ids, parent)
         hypothesis = Hypothesis(hypothesis_id, parent.id, ids, window, nodes, poses, chi2=chi2, added_constraint_id=added)
+        self._chain_chi2[hypothesis_id] = odometry
         self._condition(hypothesis)
         all_ids = np.arange(len(self._m), dtype=np.int64)
         for _ in range(self.plus.closure_rounds):
-            ok = self.evaluate(hypothesis, all_ids)[0]
+            ok = self.refinement(hypothesis, all_ids)
             members = np.zeros(len(all_ids), dtype=bool)
             members[list(ids)] = True
             keep = members & ok
@@ -201,8 +226,9 @@ class PlusModel:
                 break
             self.forget(hypothesis_id)
             ids = refined
-            nodes, poses, chi2 = self._solve_set(ids, hypothesis, hypothesis_id)
+            nodes, poses, chi2, odometry = self._solve_set(ids, hypothesis)
             hypothesis = Hypothesis(hypothesis_id, parent.id, ids, window, nodes, poses, chi2=chi2, added_constraint_id=added)
+            self._chain_chi2[hypothesis_id] = odometry
             self._condition(hypothesis)
         return hypothesis
 
@@ -210,6 +236,34 @@ class PlusModel:
         return (self._q - self._m) >= self.plus.min_loop_gap_frames
 
     # ------------------------------------------------------------------ uncertainty
+    def _random_walk(self, hypothesis: Hypothesis, frames: np.ndarray) -> np.ndarray:
+        """The odometry random walk linearised along the hypothesis' trajectory: an ``(N, 3, 3)``
+        prefix-sum array valid at ``frames`` (see :func:`~.pose_graph.random_walk_prefix`).
+
+        Within a segment between two nodes ``a < k <= b`` the hypothesis is taken as the odometry
+        moved rigidly by its correction at ``a``, ``G_a = X_a O_a⁻¹``, so
+        ``S_h[k] = S_h[a] + Ad(G_a) (S[k] - S[a]) Ad(G_a)ᵀ``: exact after the last node (extension by
+        odometry), first order inside segments, and O(nodes + frames) instead of O(N).
+        """
+        nodes = hypothesis.node_frames
+        cached = self._walk.get(hypothesis.id)
+        if cached is None:
+            odom_prefix = self.chain.prefix
+            correction = pose_graph.se2_compose(hypothesis.node_poses, _inverse(self.chain.poses[nodes]))
+            ad = pose_graph.se2_adjoint(correction)
+            steps = odom_prefix[nodes[1:]] - odom_prefix[nodes[:-1]]
+            increments = ad[:-1] @ steps @ np.swapaxes(ad[:-1], -1, -2)
+            node_prefix = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(increments, axis=0)])
+            cached = (ad, node_prefix)
+            self._walk[hypothesis.id] = cached
+        ad, node_prefix = cached
+        seg = np.clip(np.searchsorted(nodes, frames, side="left") - 1, 0, None)
+        odom_prefix = self.chain.prefix
+        delta = odom_prefix[frames] - odom_prefix[nodes[seg]]
+        out = np.empty((len(self.chain), 3, 3))
+        out[frames] = node_prefix[seg] + ad[seg] @ delta @ np.swapaxes(ad[seg], -1, -2)
+        return out
+
     def _condition(self, hypothesis: Hypothesis) -> _Conditioning:
         """The hypothesis' loops as a Gaussian-process update, in each loop's local coordinates
         (``e_l = Ad(O_q)⁻¹ (ξ_q - ξ_m)``, the tangent space of its factor's residual), where the
@@ -224,8 +278,9 @@ class PlusModel:
         m, q = self._m[ids], self._q[ids]
         n = len(ids)
         if n:
-            a = pose_graph.se2_adjoint_inverse(self.chain.poses[q])
-            p = self.chain.pair_covariance(m[:, None], q[:, None], m[None, :], q[None, :])  # (n, n, 3, 3)
+            prefix = self._random_walk(hypothesis, np.unique(np.concatenate([m, q])))
+            a = pose_graph.se2_adjoint_inverse(hypothesis.poses_at(self.chain, q))
+            p = pose_graph.pair_covariance(prefix, m[:, None], q[:, None], m[None, :], q[None, :])  # (n, n, 3, 3)
             p = a[:, None] @ p @ np.swapaxes(a, -1, -2)[None, :]
             k = p.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)
             for j, c in enumerate(ids):
@@ -242,9 +297,9 @@ class PlusModel:
         graph; members: leave-one-out, given the graph without it).
 
         Returns:
-            ``(d2 (K,), log_det_ratio (K,))``: squared Mahalanobis distance ``rᵀ C⁻¹ r`` and
-            ``log det C - log det R`` (how much wider the innovation covariance ``C`` is than the
-            measurement covariance ``R`` alone).
+            ``(d2 (K,), chi2 (K,))``: squared Mahalanobis distance ``rᵀ C⁻¹ r`` of the innovation
+            (``C`` includes the hypothesis' uncertainty), and the plain whitened residual
+            ``rᵀ R⁻¹ r`` at the hypothesis' solution (``R`` the measurement covariance).
         """
         self._sync()
         ids = np.asarray(constraint_ids, dtype=np.int64)
@@ -252,64 +307,81 @@ class PlusModel:
             return np.zeros(0), np.zeros(0)
         cond = self._condition(hypothesis)
         m, q = self._m[ids], self._q[ids]
-        x_m = hypothesis.poses_at(self.chain, m)
-        x_q = hypothesis.poses_at(self.chain, q)
+        x_m, x_q = np.split(hypothesis.poses_at(self.chain, np.concatenate([m, q])), 2)
         r = pose_graph.se2_logmap(pose_graph.se2_between(self._z[ids], pose_graph.se2_between(x_m, x_q)))
-        a_c = pose_graph.se2_adjoint_inverse(self.chain.poses[q])
-        prior = a_c @ self.chain.pair_covariance(m, q, m, q) @ np.swapaxes(a_c, -1, -2)
+        prefix = self._random_walk(hypothesis, np.unique(np.concatenate([m, q, cond.m, cond.q])))
+        a_c = pose_graph.se2_adjoint_inverse(x_q)
+        prior = a_c @ pose_graph.pair_covariance(prefix, m, q, m, q) @ np.swapaxes(a_c, -1, -2)
         n = len(cond.m)
         if n:
-            a_l = pose_graph.se2_adjoint_inverse(self.chain.poses[cond.q])
-            p_cl = self.chain.pair_covariance(m[:, None], q[:, None], cond.m[None, :], cond.q[None, :])  # (K, n, 3, 3)
+            a_l = pose_graph.se2_adjoint_inverse(hypothesis.poses_at(self.chain, cond.q))
+            p_cl = pose_graph.pair_covariance(prefix, m[:, None], q[:, None], cond.m[None, :], cond.q[None, :])  # (K, n, 3, 3)
             p_cl = a_c[:, None] @ p_cl @ np.swapaxes(a_l, -1, -2)[None, :]
             p_cl = p_cl.transpose(0, 2, 1, 3).reshape(len(ids), 3, 3 * n)
             prior = prior - (p_cl @ cond.k_inv) @ np.swapaxes(p_cl, -1, -2)
         cov = self._r[ids] + 0.5 * (prior + np.swapaxes(prior, -1, -2))
         d2 = mahalanobis_d2(r, cov)
-        log_det_r = np.linalg.slogdet(self._r[ids])[1]
-        log_ratio = np.linalg.slogdet(cov)[1] - log_det_r
+        chi2 = mahalanobis_d2(r, self._r[ids])
         member_rows = [(k, cond.position[int(c)]) for k, c in enumerate(ids) if int(c) in cond.position]
         if member_rows:
             rows = np.array([k for k, _ in member_rows])
             pos = np.array([j for _, j in member_rows])
             blocks = np.stack([cond.k_inv[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] for j in pos])
-            # leave-one-out innovation: u = R⁻¹ r,  d² = uᵀ B⁻¹ u  with B the member's block of K⁻¹;
-            # its covariance in r coordinates is C = R B R, so log det C - log det R = log det R + log det B
+            # leave-one-out innovation: u = R⁻¹ r,  d² = uᵀ B⁻¹ u  with B the member's block of K⁻¹
             u = np.linalg.solve(self._r[ids[rows]], r[rows][..., None])[..., 0]
             d2[rows] = mahalanobis_d2(u, blocks)
-            log_ratio[rows] = log_det_r[rows] + np.linalg.slogdet(blocks)[1]
-        return d2, log_ratio
-
-    def log_likelihood_ratio(self, hypothesis: Hypothesis, constraint_ids: np.ndarray) -> np.ndarray:
-        """``(K,)``: ``½ (gate - d²) - ½ (log det C - log det R)``, the log-likelihood ratio of
-        "inlier" (Gaussian innovation) against "outlier" (a density at which a constraint measured
-        with covariance ``R`` is a coin toss at ``d² = gate``). Positive means consistent."""
-        d2, log_ratio = self.mahalanobis(hypothesis, constraint_ids)
-        return 0.5 * (self.plus.gate_chi2 - d2) - 0.5 * log_ratio
+        return d2, chi2
 
     def evaluate(self, hypothesis: Hypothesis, constraint_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Consistent: a constraint outside the hypothesis passes the chi-square test of its
+        innovation, ``d² < gate_chi2``; a member passes it on its residual at the solution,
+        ``rᵀR⁻¹r < gate_chi2`` (members were admitted, and pruned, by their innovation and
+        leave-one-out tests when the hypothesis was refined).
+
+        Support: ``gate - min(rᵀR⁻¹r, gate)``, the truncated-least-squares cost the hypothesis'
+        solution saves on the constraint; :meth:`rank_key` subtracts the odometry chi-square.
+        """
         ids = np.asarray(constraint_ids, dtype=np.int64)
-        llr = self.log_likelihood_ratio(hypothesis, ids)
-        consistent = (llr > 0.0) & self._eligible_mask()[ids]
-        return consistent, np.where(consistent, llr, 0.0)
+        d2, chi2 = self.mahalanobis(hypothesis, ids)
+        eligible = self._eligible_mask()[ids]
+        gate = self.plus.gate_chi2
+        member = np.fromiter((int(c) in hypothesis.constraint_set for c in ids), dtype=bool, count=len(ids))
+        consistent = np.where(member, chi2 < gate, d2 < gate) & eligible
+        return consistent, np.where(eligible, gate - np.minimum(chi2, gate), 0.0)
+
+    def refinement(self, hypothesis: Hypothesis, constraint_ids: np.ndarray) -> np.ndarray:
+        """``(K,)`` bool for the consensus refinement: innovation (non-members) or leave-one-out
+        innovation (members) below the gate."""
+        ids = np.asarray(constraint_ids, dtype=np.int64)
+        return (self.mahalanobis(hypothesis, ids)[0] < self.plus.gate_chi2) & self._eligible_mask()[ids]
 
     def rank_key(self, hypothesis: Hypothesis, score: int, support: float) -> float:
-        return float(support)
+        """``-J`` up to a constant: ``J = χ²_odometry + Σ_c min(χ²_c, gate)`` is the truncated-least-
+        squares cost of the hypothesis' solution over the whole history (the objective GNC-TLS
+        minimises); bending the odometry to satisfy false loops costs ``χ²_odometry``."""
+        return float(support - self._chain_chi2.get(hypothesis.id, 0.0))
 
     def tie_key(self, hypothesis: Hypothesis) -> float:
         return 0.0 if hypothesis.chi2 is None else hypothesis.chi2
 
     def forget(self, hypothesis_id: int) -> None:
         self._cond.pop(hypothesis_id, None)
+        self._walk.pop(hypothesis_id, None)
+        if hypothesis_id != 0:
+            self._chain_chi2.pop(hypothesis_id, None)
 
     def final_trajectory(self, top: Hypothesis, accepted_ids: tuple[int, ...]) -> np.ndarray:
         if set(accepted_ids) == set(top.constraint_ids):
             return top.trajectory(self.chain)
         try:
-            nodes, poses, _ = self._solve_set(tuple(accepted_ids), top, -1)
+            nodes, poses, _, _ = self._solve_set(tuple(accepted_ids), top)
         except pose_graph.OptimisationFailed:
             return top.trajectory(self.chain)
         return self.chain.interpolate(nodes, poses, np.arange(len(self.chain)))
+
+
+def _inverse(poses: np.ndarray) -> np.ndarray:
+    return pose_graph.se2_between(poses, np.zeros_like(poses))
 
 
 def _spd_inverse(matrix: np.ndarray) -> np.ndarray:
@@ -336,6 +408,6 @@ def _make_ilv_plus(config: VerificationConfig, *, odometry_information=None) -> 
         config,
         iterations_per_window=config.ilv_plus.iterations_per_window,
         hypotheses_per_iteration=config.ilv_plus.hypotheses_per_iteration,
-        max_hypotheses=max(config.max_hypotheses, config.ilv_plus.hypotheses_per_iteration),
+        max_hypotheses=config.ilv_plus.max_hypotheses,
     )
     return IncrementalVerifier("ilv+", schedule, PlusModel, odometry_information=odometry_information)

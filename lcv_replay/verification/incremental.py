@@ -13,7 +13,8 @@ partial window):
 2. ``iterations_per_window`` iterations; each takes the ``hypotheses_per_iteration`` top-ranked
    hypotheses (ranking refreshed every iteration) and extends each by one constraint drawn by
    sequential selection (:mod:`~.hypotheses`); each child is solved warm-started from its parent
-   and adds one row to the table. With the paper's 10 × 10 that is ``N_g = 100`` per window;
+   and adds one row to the table. With the paper's 10 × 10 that is ``N_g = 100`` per window. A
+   parent is never extended twice by the same constraint (the child would be the same);
 3. after each iteration the lowest-ranked hypotheses are pruned so that at most ``max_hypotheses``
    are kept (the odometry root is always kept and counts towards the bound);
 4. a :class:`~lcv_replay.verification.base.VerifierStep` reports the ranking, the generation edges,
@@ -50,6 +51,10 @@ from lcv_replay.verification.pose_graph import OdometryChain, OptimisationFailed
 
 log = logging.getLogger(__name__)
 
+#: ``constraint_id`` of a generation edge whose child absorbed every constraint consistent with
+#: its parent (``ilv+``), rather than one drawn constraint.
+ABSORBED = -1
+
 
 class HypothesisModel(Protocol):
     """How hypotheses are solved, tested and ranked (``ilv`` and ``ilv+`` differ only here)."""
@@ -76,6 +81,10 @@ class HypothesisModel(Protocol):
 
     def forget(self, hypothesis_id: int) -> None:
         """Drop any per-hypothesis cache (the hypothesis was pruned)."""
+
+    def absorb(self, parent: Hypothesis, *, hypothesis_id: int, window: int) -> Hypothesis | None:
+        """A child of ``parent`` that also optimises the constraints consistent with it (new
+        evidence for the same world), or ``None`` (``ilv``: the paper has no such step)."""
 
     def final_trajectory(self, top: Hypothesis, accepted_ids: tuple[int, ...]) -> np.ndarray:
         """``(N, 3)``: the trajectory reported in the result."""
@@ -113,6 +122,7 @@ class IncrementalVerifier:
         self.table = ConsistencyTable()
         self.hypotheses: dict[int, Hypothesis] = {}
         self._sets: dict[frozenset[int], int] = {}
+        self._tried: dict[int, set[int]] = {}  # per hypothesis: constraints its children were drawn with
         self._eligible = np.zeros(0, dtype=bool)
         self._next_id = 0
         self._window = 0
@@ -203,17 +213,44 @@ class IncrementalVerifier:
         created: list[int] = []
         dropped: list[tuple[int, str]] = []
         all_ids = np.arange(len(constraints), dtype=np.int64)
+        if new_ids.size:
+            for parent_id in self.ranked_ids()[: self.config.hypotheses_per_iteration]:
+                child_id = self._next_id
+                t = time.perf_counter()
+                try:
+                    child = self.model.absorb(self.hypotheses[parent_id], hypothesis_id=child_id, window=self._window)
+                except OptimisationFailed as exc:
+                    log.warning("%s: dropped hypothesis %d (parent %d + its consistent constraints): %s", self.name, child_id, parent_id, exc.message)
+                    self._next_id += 1
+                    dropped.append((child_id, f"optimiser failure: {exc.message}"))
+                    continue
+                finally:
+                    timings["optimise"] += time.perf_counter() - t
+                if child is None:
+                    continue
+                self._next_id += 1
+                edges.append((parent_id, child_id, ABSORBED))
+                if child.constraint_set in self._sets:
+                    dropped.append((child_id, f"same constraint set as hypothesis {self._sets[child.constraint_set]}"))
+                    self.model.forget(child_id)
+                    continue
+                t = time.perf_counter()
+                self._keep(child, *self.model.evaluate(child, all_ids))
+                timings["rows"] += time.perf_counter() - t
+                created.append(child_id)
         for _ in range(self.config.iterations_per_window):
             parents = self.ranked_ids()[: self.config.hypotheses_per_iteration]
             grew = False
             for parent_id in parents:
                 parent = self.hypotheses[parent_id]
-                choices = selectable_constraints(
-                    parent, self.table.row(parent_id), eligible=self._eligible, existing_sets=self._sets
-                )
+                tried = self._tried.setdefault(parent_id, set())
+                eligible = self._eligible.copy()
+                eligible[list(tried)] = False  # the same draw from the same parent gives the same child
+                choices = selectable_constraints(parent, self.table.row(parent_id), eligible=eligible, existing_sets=self._sets)
                 added = draw_constraint(self.rng, choices)
                 if added is None:
                     continue
+                tried.add(added)
                 child_id = self._next_id
                 self._next_id += 1
                 t = time.perf_counter()
@@ -284,6 +321,7 @@ class IncrementalVerifier:
         self.table.remove([hypothesis_id])
         if self._sets.get(hypothesis.constraint_set) == hypothesis_id:
             del self._sets[hypothesis.constraint_set]
+        self._tried.pop(hypothesis_id, None)
         self.model.forget(hypothesis_id)
 
     def _summary(self, hypothesis_id: int, rank: int) -> HypothesisSummary:

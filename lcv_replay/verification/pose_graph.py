@@ -374,14 +374,8 @@ class OdometryChain:
             self._poses = _grow(self._poses, capacity)
             self._prefix = _grow(self._prefix, capacity)
         self._poses[self._n : self._n + k] = poses
-        ad = se2_adjoint(poses)
-        q = ad @ self.step_covariance @ np.swapaxes(ad, -1, -2)
-        if self._n == 0:
-            q[0] = 0.0  # frame 0 is fixed by the prior
-            base = np.zeros((3, 3))
-        else:
-            base = self._prefix[self._n - 1]
-        self._prefix[self._n : self._n + k] = base + np.cumsum(q, axis=0)
+        base = self._prefix[self._n - 1] if self._n else None
+        self._prefix[self._n : self._n + k] = random_walk_prefix(poses, self.step_covariance, base)
         self._n += k
 
     def segment_covariance(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -401,8 +395,7 @@ class OdometryChain:
 
     def pair_covariance(self, m1: np.ndarray, q1: np.ndarray, m2: np.ndarray, q2: np.ndarray) -> np.ndarray:
         """``Cov(ξ_q1 - ξ_m1, ξ_q2 - ξ_m2)`` (world frame) for broadcastable index arrays -> ``(..., 3, 3)``."""
-        S = self._prefix
-        return S[np.minimum(q1, q2)] - S[np.minimum(q1, m2)] - S[np.minimum(m1, q2)] + S[np.minimum(m1, m2)]
+        return pair_covariance(self._prefix, m1, q1, m2, q2)
 
     def interpolate(self, node_frames: np.ndarray, node_poses: np.ndarray, frames: np.ndarray) -> np.ndarray:
         """Poses of ``frames`` given the estimated poses of ``node_frames``.
@@ -443,6 +436,34 @@ class OdometryChain:
             zeta_k = (inv_ad_a @ (S[k_i] - S[a_i]) @ gain)[:, :, 0]
             out[interior] = se2_compose(se2_compose(x_a, se2_expmap(zeta_k)), rel[interior])
         return out
+
+
+def random_walk_prefix(poses: np.ndarray, step_covariance: np.ndarray, base: np.ndarray | None = None) -> np.ndarray:
+    """Prefix sums ``S[k] = Σ_{j<k} Ad(X_{j+1}) Σ Ad(X_{j+1})ᵀ`` of the odometry random walk
+    linearised at the poses ``X`` (see :class:`OdometryChain`).
+
+    Args:
+        poses: ``(K, 3)`` poses ``X`` of consecutive frames.
+        step_covariance: ``(3, 3)`` covariance of one odometry step.
+        base: ``(3, 3)`` prefix sum of the frame before ``poses[0]``, or ``None`` when
+            ``poses[0]`` is frame 0 (fixed by the prior, ``S[0] = 0``).
+
+    Returns:
+        ``(K, 3, 3)``.
+    """
+    ad = se2_adjoint(poses)
+    q = ad @ step_covariance @ np.swapaxes(ad, -1, -2)
+    if base is None:
+        q[0] = 0.0
+        base = np.zeros((3, 3))
+    return base + np.cumsum(q, axis=0)
+
+
+def pair_covariance(prefix: np.ndarray, m1: np.ndarray, q1: np.ndarray, m2: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    """``Cov(ξ_q1 - ξ_m1, ξ_q2 - ξ_m2)`` from random-walk prefix sums (``Cov(ξ_a, ξ_b) = S[min(a, b)]``)
+    for broadcastable index arrays -> ``(..., 3, 3)``."""
+    S = prefix
+    return S[np.minimum(q1, q2)] - S[np.minimum(q1, m2)] - S[np.minimum(m1, q2)] + S[np.minimum(m1, m2)]
 
 
 def _se2_inverse(poses: np.ndarray) -> np.ndarray:

@@ -1,0 +1,130 @@
+"""ilv and ilv+: behaviour on synthetic worlds, the ilv+ statistics, and robustslam_kitti 06 alpha 0.50."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from lcv_replay.records import LoopCandidate, Pose2D
+from lcv_replay.verification.config import VerificationConfig
+from lcv_replay.verification.hypotheses import Hypothesis
+from lcv_replay.verification.pose_graph import se2_between
+from lcv_replay.verification.registry import available_methods, make_verifier
+from tests.conftest import shared_path
+from tests.verification.ilv_synthetic import ODOM_INFORMATION, circle_world
+from tests.verification.test_incremental import SMALL, feed
+
+#: A measured loop (relative pose from geometric verification): sigma 10 cm, 10 cm, 0.01 rad.
+MEASURED_INFORMATION = (100.0, 0.0, 0.0, 100.0, 0.0, 10000.0)
+
+
+def _measured(world, query: int, match: int) -> LoopCandidate:
+    """A candidate carrying the true relative pose, as robustslam_kitti's true loops do."""
+    rel = se2_between(world.truth[match], world.truth[query])
+    return LoopCandidate(query, match, T_match_query=Pose2D(*rel), information=MEASURED_INFORMATION, source="synthetic")
+
+
+def _ate(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((a[:, :2] - b[:, :2]) ** 2, axis=1))))
+
+
+def test_both_methods_are_registered():
+    methods = available_methods()
+    assert {"ilv", "ilv+"} <= set(methods)
+    assert make_verifier("ilv", VerificationConfig()).name == "ilv"
+    assert make_verifier("ilv+", VerificationConfig()).name == "ilv+"
+
+
+@pytest.fixture(scope="module")
+def near_false_world():
+    """True loops one lap apart with measured relative poses, plus false loops that claim "same
+    pose" between places 7-9 m apart: inside the paper's 10 m radius, far outside 10 cm."""
+    world = circle_world(num_false=0)
+    true = tuple(_measured(world, q, q - world.frames_per_lap) for q in range(world.frames_per_lap + 5, len(world.odom), 10))
+    near = tuple(
+        LoopCandidate(q, q - world.frames_per_lap + 4, T_match_query=Pose2D(0.0, 0.0, 0.0), information=MEASURED_INFORMATION)
+        for q in range(world.frames_per_lap + 12, len(world.odom), 40)
+    )
+    return dataclasses.replace(world, true_candidates=true, false_candidates=near)
+
+
+def _run(method: str, world):
+    verifier = make_verifier(method, SMALL, odometry_information=ODOM_INFORMATION)
+    feed(verifier, world)
+    result = verifier.result()
+    true = {c.id for c in result.constraints if world.is_true(c.candidate)}
+    return verifier, result, set(result.accepted_constraint_ids), true
+
+
+def test_paper_radius_accepts_near_false_loops_and_ilv_plus_rejects_them(near_false_world):
+    world = near_false_world
+    distances = [np.linalg.norm(world.truth[c.query_frame, :2] - world.truth[c.match_frame, :2]) for c in world.false_candidates]
+    assert all(5.0 < d < 10.0 for d in distances)
+    _, _, accepted, true = _run("ilv", world)
+    assert accepted & true == true
+    assert accepted - true, "the 10 m test cannot reject loops between places 7-9 m apart"
+    _, result, accepted_plus, _ = _run("ilv+", world)
+    assert accepted_plus == true
+    assert _ate(result.trajectory, world.truth) < 0.25 * _ate(world.odom, world.truth)
+
+
+def test_ilv_plus_keeps_precision_with_far_false_loops():
+    world = circle_world(num_false=15, seed=3)
+    _, result, accepted, true = _run("ilv+", world)
+    assert accepted <= true
+    assert len(accepted) >= 0.9 * len(true)
+    # the paper's own figure: constraints within T_p of the reported trajectory
+    assert set(result.paper_consistent_ids) >= accepted
+
+
+def test_leave_one_out_equals_the_innovation_without_the_member():
+    world = circle_world(num_false=0, yaw_bias_rad=0.0005)
+    loops = [_measured(world, q, q - world.frames_per_lap) for q in range(world.frames_per_lap + 5, len(world.odom), 10)]
+    bad = loops[14]
+    loops[14] = dataclasses.replace(bad, T_match_query=Pose2D(bad.T_match_query.x_m + 1.5, bad.T_match_query.y_m - 1.0, bad.T_match_query.yaw_rad))
+    verifier = make_verifier("ilv+", SMALL, odometry_information=ODOM_INFORMATION)
+    for k, pose in enumerate(world.odom):
+        verifier.add_frame(k, Pose2D(*pose))
+        verifier.add_candidates([c for c in loops if c.query_frame == k])
+    model = verifier.model
+    model.plus = dataclasses.replace(model.plus, closure_rounds=0)  # keep the member sets as given
+    root = Hypothesis(0, None, (), 0, np.zeros(1, dtype=np.int64), world.odom[:1].copy())
+    members = (2, 6, 10, 12, 13, 14)
+    with_all = model.solve(root, members, hypothesis_id=1, window=0, added=14)
+    without = model.solve(root, members[:-1], hypothesis_id=2, window=0, added=13)
+    loo, in_sample = (v[0] for v in model.mahalanobis(with_all, np.array([14])))
+    innovation = model.mahalanobis(without, np.array([14]))[0][0]
+    assert innovation > 10.0  # the 1.8 m error is visible ...
+    assert in_sample < 0.5 * innovation  # ... but the solution that includes it hides it
+    assert loo == pytest.approx(innovation, rel=0.1)  # the leave-one-out test recovers it
+
+
+def test_robustslam_kitti_06_alpha_050():
+    from recorders.g2o import load_g2o, load_ground_truth, load_true_loops
+
+    folder = shared_path("robustslam_kitti", "06")
+    graph = load_g2o(folder / "kitti_06_alpha_0.50.g2o")
+    odom = graph.odometry_poses()
+    truth_pairs = load_true_loops(folder / "kitti_06_alpha_0.50_GT_LC.txt", len(odom))
+    ground_truth = load_ground_truth(folder / "kitti_06_GT.g2o", len(odom))
+    by_query: dict[int, list[LoopCandidate]] = {}
+    for c in graph.loop_candidates():
+        by_query.setdefault(c.query_frame, []).append(c)
+    verifier = make_verifier("ilv+", VerificationConfig(), odometry_information=graph.odometry_information_matrix())
+    for k, pose in enumerate(odom):
+        verifier.add_frame(k, Pose2D(*pose))
+        verifier.add_candidates(by_query.get(k, []))
+        verifier.step()
+    result = verifier.result()
+    accepted = {result.constraints[i].candidate.pair for i in result.accepted_constraint_ids}
+    true = {c.candidate.pair for c in result.constraints} & truth_pairs
+    assert len(result.constraints) == 126 and len(true) == 45
+    tp = len(accepted & true)
+    # measured: P 1.00, R 1.00 (45/45), ATE 2.19 m (oracle 2.19 m, odometry 3.6 m)
+    assert tp == len(accepted), "precision must be 1.0"
+    assert tp >= 43
+    from lcv_replay.evaluation.metrics import absolute_trajectory_error
+
+    assert absolute_trajectory_error(result.trajectory, ground_truth).rmse_m < 2.45
