@@ -23,10 +23,12 @@ Registered methods (``--method``):
     from the log's labels, else its ground truth; see :func:`needs_truth`).
 
 All of them are fed frame by frame and never read the future. With ``baselines.solve_every =
-"window"`` (the default) each batch method re-solves the whole history at every window end,
-warm-started from its previous solution extended by odometry, so a replay shows it evolving; with
-``"end"`` it solves once in :meth:`result` (from the odometry, the classic batch set-up) and its
-window steps carry the odometry.
+"end"`` (the default) a batch method solves once in :meth:`result`, from the odometry: the classic
+batch set-up, and its window steps carry the odometry with nothing accepted (so its latency is the
+frames to the end of the log). With ``"window"`` it re-solves the whole history at every window
+end, warm-started from its previous solution extended by odometry, so a replay shows it evolving;
+that costs about 3x the time of one batch solve on KITTI 00 (10 windows), and much more where one
+solve is slow (GNC on Manhattan with 1000 outliers: minutes per solve).
 """
 
 from __future__ import annotations
