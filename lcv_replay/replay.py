@@ -439,6 +439,91 @@ def code_bits_msb_first(code: int, code_bits: int) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------- the replay
+@dataclass
+class _Setup:
+    """Everything opened and checked before the first frame (see :func:`_prepare`)."""
+
+    reader: Any
+    config: ReplayConfig
+    source: str
+    first: int
+    verifier: Any
+    retrieval: _Retrieval | None
+    truth: _Truth
+    start: RunStart
+
+    def pairs(self, options: ReplayOptions) -> Iterator[tuple[Frame, Any]]:
+        """``(frame, descriptor | None)`` of the replayed range, log-indexed."""
+
+        def frames() -> Iterator[Frame]:
+            return self.reader.frames(start_offset_s=options.start_offset_s, duration_s=options.duration_s)
+
+        if self.retrieval is not None:
+            return self.retrieval.described(frames)
+        return ((frame, None) for frame in frames())
+
+
+def _prepare(options: ReplayOptions) -> _Setup:
+    """Open the log, refuse what cannot be replayed, build the verifier, retrieval and truth."""
+    from lcv_replay.log.reader import open_log
+    from lcv_replay.verification.registry import make_verifier
+
+    path = Path(options.log_path)
+    reader = open_log(path, recover=options.recover)
+    info = reader.info
+    if not info.has_odometry:
+        raise ReplayError(
+            "the log has no odometry (/odom): the verifier needs it",
+            path=path,
+            fix="record the log with odometry, or estimate it first with 'lcv-replay vo'",
+        )
+    source = resolve_constraint_source(
+        options.constraints, has_images=info.has_images, has_candidates=info.has_candidates, path=path
+    )
+    config = options.resolved_config()
+    stamps = reader.frame_stamps_ns
+    first, last = frame_range(stamps, options.start_offset_s, options.duration_s)
+    if first >= last:
+        raise ReplayError(
+            f"no frames in the requested time range (start offset {options.start_offset_s} s, "
+            f"duration {options.duration_s} s; the log lasts {info.duration_s:.1f} s)",
+            path=path,
+            fix="choose --start-offset/--duration inside the log",
+        )
+    verifier = make_verifier(config.verification.method, config.verification, odometry_information=info.odometry_information)
+    retrieval = _Retrieval(config.retrieval, path) if source in ("images", "both") else None
+
+    ground_truth = reader.ground_truth() if info.has_ground_truth else None
+    if ground_truth is not None:
+        ground_truth = ground_truth[first:last]
+        if not np.any(np.isfinite(ground_truth[:, 0])):
+            ground_truth = None
+    true_pairs = None
+    if info.has_labels:
+        true_pairs = {(q - first, m - first) for q, m in reader.true_loops() if m >= first}
+    truth_source = choose_truth_source(source, has_labels=info.has_labels, has_ground_truth=ground_truth is not None)
+    truth = _Truth(truth_source, true_pairs, ground_truth, config.verification.consistency_radius_m)
+    start = RunStart(
+        log_path=path,
+        method=config.verification.method,
+        constraint_source=source,
+        rate=options.rate,
+        seed=config.verification.seed,
+        config=to_dict(config),
+        frames=last - first,
+        first_log_frame=first,
+        start_ns=int(stamps[first]),
+        log_duration_s=float(stamps[last - 1] - stamps[first]) / 1e9,
+        log_metadata=dict(info.metadata),
+        has_images=info.has_images,
+        has_ground_truth=ground_truth is not None,
+        truth_source=truth_source.value,
+        ground_truth=ground_truth,
+        code_bits=config.retrieval.code_bits if retrieval is not None else None,
+    )
+    return _Setup(reader, config, source, first, verifier, retrieval, truth, start)
+
+
 def replay(
     options: ReplayOptions,
     sinks: Sequence[Sink],
@@ -449,142 +534,70 @@ def replay(
 ) -> RunSummary:
     """Replay ``options.log_path`` into ``sinks``; returns the run summary (also given to the sinks).
 
+    ``clock`` paces the frames (default: the wall clock); ``stop`` (or Ctrl-C when
+    ``handle_sigint``) ends the replay after the current frame with a summary as of the last
+    completed window. Every sink is closed on the way out, whatever happens.
+
     Raises:
         LogFormatError: the log is missing or malformed.
         ReplayError: no odometry; neither images nor candidates; a frame without odometry.
         ConfigError: an unknown method or bad option.
     """
-    from lcv_replay.log.reader import open_log
-    from lcv_replay.verification.registry import make_verifier
-
     clock = clock or SystemClock()
     stop = stop or StopToken()
     group = SinkGroup(sinks)
     with group.opened():
         setup_started = clock.now()
-        reader = open_log(options.log_path, recover=options.recover)
-        info = reader.info
-        path = Path(options.log_path)
-        if not info.has_odometry:
-            raise ReplayError(
-                "the log has no odometry (/odom): the verifier needs it",
-                path=path,
-                fix="record the log with odometry, or estimate it first with 'lcv-replay vo'",
-            )
-        source = resolve_constraint_source(
-            options.constraints, has_images=info.has_images, has_candidates=info.has_candidates, path=path
-        )
-        config = options.resolved_config()
-        method = config.verification.method
-        stamps = reader.frame_stamps_ns
-        first, last = frame_range(stamps, options.start_offset_s, options.duration_s)
-        if first >= last:
-            raise ReplayError(
-                f"no frames in the requested time range (start offset {options.start_offset_s} s, "
-                f"duration {options.duration_s} s; the log lasts {info.duration_s:.1f} s)",
-                path=path,
-                fix="choose --start-offset/--duration inside the log",
-            )
-        verifier = make_verifier(method, config.verification, odometry_information=info.odometry_information)
-        retrieval = _Retrieval(config.retrieval, path) if source in ("images", "both") else None
-
-        ground_truth = reader.ground_truth() if info.has_ground_truth else None
-        if ground_truth is not None:
-            ground_truth = ground_truth[first:last]
-            if not np.any(np.isfinite(ground_truth[:, 0])):
-                ground_truth = None
-        true_pairs = None
-        if info.has_labels:
-            true_pairs = {(q - first, m - first) for q, m in reader.true_loops() if m >= first}
-        truth_source = choose_truth_source(source, has_labels=info.has_labels, has_ground_truth=ground_truth is not None)
-        truth = _Truth(truth_source, true_pairs, ground_truth, config.verification.consistency_radius_m)
-
-        seed = config.verification.seed
-        group.on_start(
-            RunStart(
-                log_path=path,
-                method=method,
-                constraint_source=source,
-                rate=options.rate,
-                seed=seed,
-                config=to_dict(config),
-                frames=last - first,
-                first_log_frame=first,
-                start_ns=int(stamps[first]),
-                log_duration_s=float(stamps[last - 1] - stamps[first]) / 1e9,
-                log_metadata=dict(info.metadata),
-                has_images=info.has_images,
-                has_ground_truth=ground_truth is not None,
-                truth_source=truth_source.value,
-                ground_truth=ground_truth,
-                code_bits=config.retrieval.code_bits if retrieval is not None else None,
-            )
-        )
+        setup = _prepare(options)
+        start = setup.start
+        group.on_start(start)
         logger.info(
             "replaying %s: %d frames (%.1f s of log), method %s, constraints from %s, rate %s",
-            path, last - first, float(stamps[last - 1] - stamps[first]) / 1e9, method, source,
+            start.log_path, start.frames, start.log_duration_s, start.method, start.constraint_source,
             "max" if options.rate is None else f"{options.rate:g}×",
         )
-
-        run = _Run(verifier=verifier, truth=truth, ground_truth=ground_truth, sinks=group)
-        pacer = Pacer(options.rate, clock)
-        def frames_factory():
-            return reader.frames(start_offset_s=options.start_offset_s, duration_s=options.duration_s)
-
-        pairs = retrieval.described(frames_factory) if retrieval is not None else ((f, None) for f in frames_factory())
+        run = _Run(verifier=setup.verifier, truth=setup.truth, ground_truth=start.ground_truth, sinks=group)
+        pairs = setup.pairs(options)
         setup_s = clock.now() - setup_started
         loop_started = clock.now()
-        interrupted = False
         guard = sigint_requests_stop(stop) if handle_sigint else contextlib.nullcontext()
-        pacing: PacingReport | None = None
         with guard:
-            try:
-                for frame, descriptor in pairs:
-                    if stop.requested:
-                        interrupted = True
-                        break
-                    pacer.wait(frame.stamp_ns)
-                    run.frame(rebase_frame(frame, first), descriptor, retrieval, source, clock, loop_started)
-                    if stop.requested:
-                        interrupted = True
-                        break
-                pacing = pacer.report()
-                if not interrupted:
-                    run.finish()
-            except KeyboardInterrupt:
-                interrupted = True
+            interrupted, pacing = _drive(pairs, run, setup, Pacer(options.rate, clock), clock, stop, loop_started)
+        wall_s = clock.now() - loop_started
         if interrupted:
             logger.warning("interrupted after %d frames: summarising the last completed window", run.frames)
-        wall_s = clock.now() - loop_started
-        pacing = pacing or pacer.report()
         if options.rate is not None and pacing.achieved is not None and pacing.achieved < 0.95 * options.rate:
             logger.warning(
                 "replay ran at %.2f× real time, slower than the requested %g× (max lag %.1f s)",
                 pacing.achieved, options.rate, pacing.max_lag_s,
             )
         summary = run.summary(
-            method=method,
+            start=start,
             wall_time_s=wall_s,
             setup_time_s=setup_s,
-            log=str(path),
-            constraint_source=source,
-            seed=seed,
-            rate=options.rate,
             interrupted=interrupted,
-            config=to_dict(config),
-            rrd=_rrd_of(sinks),
+            rrd=group.recording_path,
         )
         group.on_finish(summary)
     return summary
 
 
-def _rrd_of(sinks: Sequence[Sink]) -> str | None:
-    for sink in sinks:
-        outputs = getattr(sink, "outputs", None)
-        save = getattr(outputs, "save", None)
-        if save is not None:
-            return str(save)
-    return None
+def _drive(pairs, run: "_Run", setup: _Setup, pacer: Pacer, clock: Clock, stop: StopToken, loop_started: float) -> tuple[bool, PacingReport]:
+    """The frame loop, then the verifier's final window; returns (interrupted, pacing report)."""
+    pacing: PacingReport | None = None
+    try:
+        for frame, descriptor in pairs:
+            if stop.requested:
+                return True, pacer.report()
+            pacer.wait(frame.stamp_ns)
+            run.frame(rebase_frame(frame, setup.first), descriptor, setup.retrieval, setup.source, clock, loop_started)
+            if stop.requested:
+                return True, pacer.report()
+        pacing = pacer.report()
+        run.finish()
+        return False, pacing
+    except KeyboardInterrupt:  # a second Ctrl-C: stop at once, summarise what is there
+        return True, pacing or pacer.report()
 
 
 class _Run:
@@ -679,8 +692,8 @@ class _Run:
         )
         self._emit_step(final, metrics, final=True)
 
-    def summary(self, *, method: str, wall_time_s: float, setup_time_s: float, log: str, constraint_source: str,
-                seed: int, rate: float | None, interrupted: bool, config: dict, rrd: str | None) -> RunSummary:
+    def summary(self, *, start: RunStart, wall_time_s: float, setup_time_s: float, interrupted: bool,
+                rrd: Path | None) -> RunSummary:
         metrics = self.last_metrics
         if metrics is None:  # interrupted before the first step: nothing accepted yet
             metrics = StepMetrics(
@@ -697,7 +710,7 @@ class _Run:
             frames=self.frames,
             wall_time_s=wall_time_s,
             log_duration_s=duration,
-            method=method,
+            method=start.method,
             constraints=len(self.constraints),
             accepted=d.accepted,
             true_positives=d.true_positives,
@@ -707,16 +720,16 @@ class _Run:
             recall=d.recall,
             ate_rmse_m=metrics.ate_rmse_m,
             hypotheses=metrics.hypotheses,
-            log=log,
-            constraint_source=constraint_source,
+            log=str(start.log_path),
+            constraint_source=start.constraint_source,
             truth_source=self.truth.source.value,
-            seed=seed,
-            rate_requested=rate,
+            seed=start.seed,
+            rate_requested=start.rate,
             setup_time_s=setup_time_s,
             interrupted=interrupted,
             accepted_constraint_ids=accepted_ids,
-            rrd=rrd,
-            config=config,
+            rrd=None if rrd is None else str(rrd),
+            config=dict(start.config),
         )
 
 

@@ -57,6 +57,8 @@ def build_sinks(*, rerun_config, outputs, summary_json: Optional[Path], quiet: b
 class _ServeUntilInterrupted:
     """After the replay, keeps the served viewer up until Ctrl-C (``--serve``)."""
 
+    recording_path = None
+
     def __init__(self, rerun_sink):
         self.rerun_sink = rerun_sink
 

@@ -242,7 +242,12 @@ def _json_number(value: Any) -> Any:
 
 
 class Sink(Protocol):
-    """Receives everything the replay produces; see the module docstring for the call order."""
+    """Receives everything the replay produces; see the module docstring for the call order.
+
+    ``recording_path`` is the file the sink records the run into, if any (the summary names it).
+    """
+
+    recording_path: Path | None
 
     def on_start(self, start: RunStart) -> None: ...
 
@@ -259,6 +264,8 @@ class Sink(Protocol):
 
 class BaseSink:
     """No-op implementation of every :class:`Sink` method, to inherit from."""
+
+    recording_path: Path | None = None
 
     def on_start(self, start: RunStart) -> None:
         pass
@@ -284,6 +291,11 @@ class SinkGroup(BaseSink):
 
     def __init__(self, sinks: Iterable[Sink]):
         self.sinks: tuple[Sink, ...] = tuple(sinks)
+
+    @property
+    def recording_path(self) -> Path | None:  # type: ignore[override]
+        """The first recording file among the sinks."""
+        return next((s.recording_path for s in self.sinks if s.recording_path is not None), None)
 
     def on_start(self, start: RunStart) -> None:
         for sink in self.sinks:

@@ -199,6 +199,10 @@ class RerunSink(BaseSink):
         self._stamps: list[int] = []  # log_time of each frame, by index
         self._stages: list[str] | None = None  # verifier stage names of /metrics/stage_time_s
 
+    @property
+    def recording_path(self) -> Path | None:  # type: ignore[override]
+        return None if self.outputs.save is None else Path(self.outputs.save)
+
     # ------------------------------------------------------------------ set-up
     def on_start(self, start: RunStart) -> None:
         self._start = start

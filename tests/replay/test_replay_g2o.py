@@ -18,7 +18,7 @@ import pytest
 from lcv_replay.config import load_config
 from lcv_replay.replay import DEFAULT_METHOD, ReplayOptions, StopToken, replay
 from lcv_replay.sinks import blueprint as bp
-from lcv_replay.sinks.base import SUMMARY_KEYS
+from lcv_replay.sinks.base import SUMMARY_KEYS, BaseSink
 from lcv_replay.sinks.layout import ConstraintState
 from lcv_replay.sinks.config import RerunOutputs
 from lcv_replay.sinks.rerun_sink import RerunSink
@@ -153,12 +153,7 @@ def test_stop_token_summarises_the_last_completed_window(square, tmp_path):
     config = load_config(square["config"])
     stop = StopToken()
 
-    class StopAt:
-        def __init__(self):
-            from lcv_replay.sinks.base import BaseSink
-
-            self.__class__ = type("StopAtSink", (BaseSink,), {"on_frame": self.on_frame})
-
+    class StopAt(BaseSink):
         def on_frame(self, update):
             if update.frame.index == 250:
                 stop.request()
@@ -166,7 +161,7 @@ def test_stop_token_summarises_the_last_completed_window(square, tmp_path):
     rrd = tmp_path / "stopped.rrd"
     summary = replay(ReplayOptions(log_path=square["log"], config=config, seed=SEED),
                      [RerunSink(config.rerun, RerunOutputs(save=rrd)), StopAt()], stop=stop, handle_sigint=False)
-    assert summary.interrupted and summary.frames == 251
+    assert summary.interrupted and summary.frames == 251 and summary.rrd == str(rrd)
     segs = read_rrd(rrd)[bp.CONSTRAINTS_SEGMENTS]
     assert max(segs.column("frame").to_pylist()) == 199  # the last completed window
     classes = last_row(segs, "LineStrips2D:class_ids")
