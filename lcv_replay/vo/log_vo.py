@@ -169,6 +169,12 @@ class VoLogStats:
     replaced_odometry: bool
 
 
+def refuse_input_as_output(source: Path, out: Path) -> None:
+    """:class:`OutputError` when ``out`` is the same file as ``source`` (even with ``--force``)."""
+    if out.exists() and source.exists() and os.path.samefile(source, out):
+        raise OutputError("the output is the input log; lcv-replay vo never rewrites its input", path=out, fix="name a new output file")
+
+
 def write_log_with_odometry(
     source: str | Path,
     out: str | Path,
@@ -197,8 +203,7 @@ def write_log_with_odometry(
     from mcap_protobuf.schema import register_schema
 
     source, out = Path(source), Path(out)
-    if out.exists() and source.exists() and os.path.samefile(source, out):
-        raise OutputError("the output is the input log; lcv-replay vo never rewrites its input", path=out, fix="name a new output file")
+    refuse_input_as_output(source, out)
     if len(stamps_ns) != len(poses):
         raise OdometryError(f"{len(stamps_ns)} stamps but {len(poses)} poses")
     vo_messages = sorted(zip((int(s) for s in stamps_ns), range(len(poses)), poses))
@@ -289,8 +294,7 @@ def add_vo_odometry(
     """
     log_path, out_path = Path(log_path), Path(out_path)
     config = config or VoConfig()
-    if out_path.exists() and os.path.samefile(log_path, out_path):
-        raise OutputError("the output is the input log; lcv-replay vo never rewrites its input", path=out_path, fix="name a new output file")
+    refuse_input_as_output(log_path, out_path)
     from lcv_replay.fileio import check_output_path
 
     check_output_path(out_path, force=force)
