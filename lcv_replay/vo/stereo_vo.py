@@ -623,7 +623,7 @@ class StereoVoTracker:
                 if status.is_fallback:
                     logger.debug("frame %d: re-anchoring on a new keyframe after %d fallback frames", index, self._fallbacks_in_row)
                 self._keyframe, self._T_odom_keyframe = keyframe, T_odom_cur
-                self._fallbacks_in_row = 0 if status.is_fallback else self._fallbacks_in_row
+                self._fallbacks_in_row = 0
 
         quality = VoQuality(
             index=index,
