@@ -1,5 +1,7 @@
 """The default blueprint in a real (headless) Rerun viewer: every view healthy, a screenshot taken.
 
+The replay streams to the viewer (``--connect``) and saves the .rrd at the same time (tee).
+
 Needs a Vulkan adapter: a GPU, or Mesa's software rasterizer lavapipe (Debian:
 ``apt-get install mesa-vulkan-drivers``). Skipped with that reason when none is present. Set
 ``LCV_SCREENSHOT_DIR`` to keep the PNG.
@@ -45,43 +47,68 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def screenshot(rrd: Path, png: Path, *, frame: int | None = None, timeout_s: float = 60.0):
-    """Open ``rrd`` in a headless viewer, go to ``frame``, save a PNG; returns the viewer state."""
+def _settle(viewer, timeout_s: float) -> object:
+    deadline = time.monotonic() + timeout_s
+    state = viewer.get_state()
+    while (state.loading or not state.recordings or not state.recordings[0].timelines) and time.monotonic() < deadline:
+        time.sleep(0.5)
+        state = viewer.get_state()
+    return state
+
+
+def screenshot(rrd: Path | None, png: Path, *, frame: int | None = None, viewer=None, timeout_s: float = 60.0):
+    """Open ``rrd`` (or use what ``viewer`` already has) headless, go to ``frame``, save a PNG.
+
+    Returns the viewer state. A viewer is spawned (and quit) when none is given.
+    """
     from rerun.experimental import ViewerClient
 
     os.environ.setdefault("WGPU_BACKEND", "vulkan")
-    viewer = ViewerClient.spawn(headless=True, port=_free_port(), hide_welcome_screen=True, memory_limit="2GB")
+    own = viewer is None
+    if own:
+        viewer = ViewerClient.spawn(headless=True, port=_free_port(), hide_welcome_screen=True, memory_limit="2GB")
     try:
-        viewer.open(str(rrd))
-        deadline = time.monotonic() + timeout_s
-        state = viewer.get_state()
-        while (state.loading or not state.recordings) and time.monotonic() < deadline:
-            time.sleep(0.5)
-            state = viewer.get_state()
+        if rrd is not None:
+            viewer.open(str(rrd))
+        _settle(viewer, timeout_s)
         if frame is not None:
             viewer.set_time("frame", sequence=frame, play_state="paused")
         time.sleep(2.0)  # let every view paint once
         png.write_bytes(viewer.take_screenshot())
         return viewer.get_state()
     finally:
-        viewer.quit()
+        if own:
+            viewer.quit()
 
 
 @pytest.mark.slow
 @pytest.mark.skipif(shutil.which("rerun") is None, reason="the rerun viewer executable (rerun-sdk) is not on PATH")
 @pytest.mark.skipif(not _vulkan_available(), reason="no Vulkan adapter for a headless viewer (apt-get install mesa-vulkan-drivers)")
-def test_default_layout_in_a_headless_viewer(tmp_path):
+def test_default_layout_streamed_to_a_headless_viewer_and_saved(tmp_path):
+    """--connect and --save together (tee): the viewer shows the default layout, the file is complete."""
     import cv2
+    from rerun.experimental import ViewerClient
+
+    from tests.replay.helpers import read_rrd
 
     log, route = record_square_route(tmp_path)
     config = load_config(write_config(tmp_path / "fast.toml", FAST_CONFIG_TOML))
     rrd = tmp_path / "layout.rrd"
-    replay(ReplayOptions(log_path=log, config=config, seed=1), [RerunSink(config.rerun, RerunOutputs(save=rrd))], handle_sigint=False)
     png = Path(os.environ.get("LCV_SCREENSHOT_DIR", tmp_path)) / "layout.png"
+    os.environ.setdefault("WGPU_BACKEND", "vulkan")
     try:
-        state = screenshot(rrd, png, frame=route.frames - 1)
-    except Exception as exc:  # no adapter after all, viewer crash: say so rather than fail obscurely
+        viewer = ViewerClient.spawn(headless=True, port=_free_port(), hide_welcome_screen=True, memory_limit="2GB")
+    except Exception as exc:  # no adapter after all: say so rather than fail obscurely
         pytest.skip(f"headless viewer unavailable here: {exc}")
+    try:
+        outputs = RerunOutputs(save=rrd, connect=viewer.url)
+        replay(ReplayOptions(log_path=log, config=config, seed=1), [RerunSink(config.rerun, outputs)], handle_sigint=False)
+        state = screenshot(None, png, frame=route.frames - 1, viewer=viewer)
+    finally:
+        viewer.quit()
+    timelines = {t.name: t for t in state.recordings[0].timelines}
+    assert timelines["frame"].end == route.frames - 1  # everything streamed to the viewer
+    assert max(read_rrd(rrd)["/trajectories/current"].column("frame").to_pylist()) == route.frames - 1
     names = {view.name for view in state.views}
     assert EXPECTED_VIEWS <= names, names
     broken = {view.name: [r.summary for r in view.reports] for view in state.views if view.visible and view.reports}
