@@ -690,6 +690,8 @@ class _Run:
             ate_rmse_m=_ate_rmse(result.trajectory, self.ground_truth),
             hypotheses=len(result.ranking) if result.ranking else None,
         )
+        if final is self.last_step and metrics == self.last_metrics:
+            return  # the last window end was the end of the log: already with the sinks
         self._emit_step(final, metrics, final=True)
 
     def summary(self, *, start: RunStart, wall_time_s: float, setup_time_s: float, interrupted: bool,
