@@ -564,6 +564,8 @@ def replay(
         with guard:
             interrupted, pacing = _drive(pairs, run, setup, Pacer(options.rate, clock), clock, stop, loop_started)
         wall_s = clock.now() - loop_started
+        if setup.retrieval is not None and not interrupted and setup.retrieval.retriever.warmup_message():
+            logger.warning("%s", setup.retrieval.retriever.warmup_message())
         if interrupted:
             logger.warning("interrupted after %d frames: summarising the last completed window", run.frames)
         if options.rate is not None and pacing.achieved is not None and pacing.achieved < 0.95 * options.rate:
