@@ -365,7 +365,7 @@ def _fmt(value: float | int | None, digits: int = 2) -> str:
 
 
 def markdown_rows(rows: Sequence[CaseRow]) -> str:
-    """One line per case × method: P, R, F1, TP/FP/FN, ATE (aligned), time."""
+    """One line per case × method: P, R, F1 (3 decimals: 0.998 is not 1), TP/FP/FN, ATE (aligned), time."""
     lines = [
         "| case | method | P | R | F1 | TP | FP | FN | ATE m | time s | ×RT |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
@@ -376,7 +376,7 @@ def markdown_rows(rows: Sequence[CaseRow]) -> str:
             lines.append(f"| {r.case} | {r.method} | error: {r.error} |||||||||")
             continue
         lines.append(
-            f"| {r.case} | {r.method} | {_fmt(row.precision)} | {_fmt(row.recall)} | {_fmt(row.f1)} | "
+            f"| {r.case} | {r.method} | {_fmt(row.precision, 3)} | {_fmt(row.recall, 3)} | {_fmt(row.f1, 3)} | "
             f"{_fmt(row.true_positives)} | {_fmt(row.false_positives)} | {_fmt(row.false_negatives)} | "
             f"{_fmt(row.ate_rmse_m)} | {_fmt(row.wall_time_s)} | {_fmt(row.realtime_factor, 0)} |"
         )
@@ -392,8 +392,8 @@ def markdown_summary(summary: Sequence[MethodSummary]) -> str:
     for s in summary:
         cases = f"{s.cases}" + (f" ({s.errors} errors)" if s.errors else "")
         lines.append(
-            f"| {s.method} | {cases} | {_fmt(s.mean_precision)} | {_fmt(s.min_precision)} | "
-            f"{s.no_false_positive_cases} | {_fmt(s.mean_recall)} | {_fmt(s.mean_f1)} | {_fmt(s.mean_ate_m)} | "
+            f"| {s.method} | {cases} | {_fmt(s.mean_precision, 3)} | {_fmt(s.min_precision, 3)} | "
+            f"{s.no_false_positive_cases} | {_fmt(s.mean_recall, 3)} | {_fmt(s.mean_f1, 3)} | {_fmt(s.mean_ate_m)} | "
             f"{_fmt(s.mean_ate_over_oracle)} | {_fmt(s.max_ate_over_oracle)} | {_fmt(s.total_time_s, 1)} | "
             f"{_fmt(s.median_time_s)} |"
         )

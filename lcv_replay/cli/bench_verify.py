@@ -20,7 +20,7 @@ def _load_verification_config(config: Optional[Path]):
 
 
 def _num(value) -> str:
-    return "–" if value is None else f"{value:.2f}"
+    return "–" if value is None else f"{value:.3f}"
 
 
 def _check_json_output(path: Optional[Path]) -> None:
@@ -130,7 +130,7 @@ def bench_suite_command(
         if not console.is_terminal:  # no live bar (CI, a pipe): one line per finished run instead
             r = row.row
             status = f"error: {row.error}" if r is None else (
-                f"P {_num(r.precision)} R {_num(r.recall)} ATE {_num(r.ate_rmse_m)} m, {r.wall_time_s:.1f} s"
+                f"P {_num(r.precision)} R {_num(r.recall)} FP {r.false_positives} ATE {_num(r.ate_rmse_m)} m, {r.wall_time_s:.1f} s"
             )
             console.print(f"[{len(done_rows)}/{len(chosen.cases) * len(methods)}] {row.case} {row.method}: {status}", markup=False, highlight=False)
 

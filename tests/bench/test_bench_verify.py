@@ -65,7 +65,7 @@ def test_cli_bench_verify_writes_json_rows(kitti06, tmp_path):
     out = tmp_path / "rows.json"
     result = CliRunner().invoke(app, ["bench", "verify", str(kitti06), "-m", "none", "-m", "oracle", "--json", str(out)])
     assert result.exit_code == 0, result.output
-    assert "| kitti06.mcap | oracle | 1.00 | 1.00 |" in result.output
+    assert "| kitti06.mcap | oracle | 1.000 | 1.000 |" in result.output
     rows = json.loads(out.read_text())
     assert [r["method"] for r in rows] == ["none", "oracle"]
     for r in rows:
@@ -197,7 +197,7 @@ def test_cli_bench_suite_from_a_toml_file(tmp_path):
             "--workdir", str(tmp_path / "work"), "--data", str(SHARED_DATA), "--json", str(out)]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
-    assert "| kitti07-a0.50 | oracle | 1.00 | 1.00 |" in result.output
+    assert "| kitti07-a0.50 | oracle | 1.000 | 1.000 |" in result.output
     assert "| method | cases | mean P |" in result.output
     report = json.loads(out.read_text())
     assert report["complete"] and report["methods"] == ["dcs", "oracle"]
