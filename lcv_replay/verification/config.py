@@ -46,7 +46,7 @@ class IlvPlusConfig:
     gate_chi2: float = 16.27  # Mahalanobis gate, chi2(3 dof) quantile 0.999
     min_loop_gap_frames: int = 0  # drop candidates closer in time (retrieval already excludes Δt, sec. II-B)
     closure_rounds: int = 2  # consensus refinement rounds per drawn hypothesis (0 = the paper's child)
-    max_covariance_loops: int = 24  # loops (evenly spread in time) conditioning the covariance; bounds the cost
+    covariance_loops: int = 24  # loops of a hypothesis (evenly spread in time) conditioning the innovation covariance (cost bound)
     iterations_per_window: int = 3  # sec. II-D uses 10 x 10; consensus refinement needs far fewer children
     hypotheses_per_iteration: int = 5
     max_hypotheses: int = 50  # kept hypotheses (the paper's bound is 200); each costs a column test per window
@@ -57,7 +57,7 @@ class IlvPlusConfig:
         require(self.gate_chi2 > 0, "verification.ilv_plus.gate_chi2", self.gate_chi2, "a number > 0")
         require(self.min_loop_gap_frames >= 0, "verification.ilv_plus.min_loop_gap_frames", self.min_loop_gap_frames, "an integer >= 0")
         require(self.closure_rounds >= 0, "verification.ilv_plus.closure_rounds", self.closure_rounds, "an integer >= 0")
-        require(self.max_covariance_loops >= 1, "verification.ilv_plus.max_covariance_loops", self.max_covariance_loops, "an integer >= 1")
+        require(self.covariance_loops >= 1, "verification.ilv_plus.covariance_loops", self.covariance_loops, "an integer >= 1")
         require(self.iterations_per_window >= 1, "verification.ilv_plus.iterations_per_window", self.iterations_per_window, "an integer >= 1")
         require(self.hypotheses_per_iteration >= 1, "verification.ilv_plus.hypotheses_per_iteration", self.hypotheses_per_iteration, "an integer >= 1")
         require(self.max_hypotheses >= self.hypotheses_per_iteration, "verification.ilv_plus.max_hypotheses", self.max_hypotheses, "an integer >= hypotheses_per_iteration")

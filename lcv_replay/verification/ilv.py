@@ -11,29 +11,36 @@ Verification", SII 2016, as the paper defines it:
 * sequential selection, windows of 500 frames, 10 × 10 children per window, at most 200 kept
   (:mod:`~.incremental`); accepted = the constraints consistent with the rank-1 hypothesis.
 
-``ilv+`` keeps that structure and changes what the paper leaves weak:
+``ilv+`` keeps that structure (constraint history, hypotheses as pose-graph solutions warm-started
+from their parents, the append-only table, sequential selection of inconsistent constraints,
+windows, pruning) and changes what the paper leaves weak:
 
-1. **Mahalanobis consistency under the hypothesis' own uncertainty** instead of a fixed 10 m
-   radius. The odometry is a random walk whose segment covariances come from prefix sums
-   (:class:`~.pose_graph.OdometryChain`); a hypothesis' loops condition it (a Gaussian-process
-   update), so the test is tight where the hypothesis has closed loops and loose after a long
-   open traverse. A constraint outside the hypothesis is tested by its innovation
-   ``rᵀ (R + Σ_pred)⁻¹ r``; a constraint inside it by its leave-one-out innovation, so a false
-   loop inside a hypothesis is not "consistent" just because the optimiser bent the odometry to
-   satisfy it. Both use the nonlinear residual at the hypothesis' solution and the chi-square gate
-   ``gate_chi2`` (3 dof, 0.999).
-2. **Consensus refinement of each drawn hypothesis** (``closure_rounds``): after the child is
-   solved, its members that fail the leave-one-out test are removed and the non-members that pass
-   are added, and it is solved again. A hypothesis thus becomes a self-consistent consensus set,
-   and a group of mutually consistent false loops must beat the true loops on their own graph, where
-   the bent odometry shows in every other constraint's innovation.
-3. **A reduced pose graph**: nodes are frame 0 and the loop endpoints only, the odometry between
-   them composed exactly with its covariance (first order); the other frames are the Brownian-
-   bridge interpolation. The cost of a hypothesis depends on its loops, not on the log length.
-4. Constraints shorter in time than ``min_loop_gap_frames`` (the paper's Δt = 200 of II-B) are
-   never drawn or accepted.
+1. **Mahalanobis consistency under the hypothesis' own uncertainty** instead of a fixed 10 m radius,
+   so loops between places that really are near each other are judged by their measurement, not
+   by a radius. The odometry is a random walk whose covariances come from prefix sums
+   (:class:`~.pose_graph.OdometryChain`), linearised along the hypothesis; the hypothesis' loops
+   condition it (a Gaussian-process update), so the test is tight where the hypothesis has closed
+   loops and loose after a long open traverse. A constraint outside the hypothesis is consistent
+   when its innovation passes the chi-square gate, ``rᵀ (R + Σ_pred)⁻¹ r < gate_chi2`` (3 dof,
+   0.999); a constraint inside it when its residual at the solution does, ``rᵀ R⁻¹ r < gate_chi2``.
+2. **Ranking by the truncated-least-squares cost** ``J = χ²_odometry + Σ_c min(χ²_c, gate)`` of the
+   hypothesis' solution over the whole history (the objective GNC-TLS minimises), instead of the
+   count of consistent constraints. Bending the odometry to satisfy a false loop, or a group of
+   mutually consistent false loops, costs its odometry chi-square and the true loops it breaks; a
+   hypothesis that merely fails to exclude constraints earns nothing for them.
+3. **Consensus refinement**: every child is solved, then its members whose residual fails the gate
+   are removed and the constraints outside it that pass are added, and it is solved again
+   (``closure_rounds``); the drawn constraint stays, since the child tests it. At every window
+   end the top hypotheses also **absorb** the new constraints consistent with them (a child edge
+   with constraint id ``ABSORBED``), which is how a hypothesis follows new evidence for its world.
+4. **A reduced pose graph**: nodes are frame 0 and the hypothesis' loop endpoints only, the odometry
+   between them composed exactly with its covariance (first order); the other frames are the
+   Brownian-bridge interpolation. The cost of a hypothesis depends on its loops, not on the log
+   length, so a smaller schedule (3 × 5 children, 50 kept) runs far faster than the paper's.
+5. Accepted = the rank-1 hypothesis' own constraints that its solution satisfies.
+   ``min_loop_gap_frames`` (default 0) can drop candidates too close in time.
 
-The reported trajectory of ``ilv+`` is the reduced-graph solution of its accepted set.
+The reported trajectory of ``ilv+`` is the reduced-graph solution of its accepted set, interpolated.
 """
 
 from __future__ import annotations
@@ -118,6 +125,9 @@ class PaperModel:
     def absorb(self, parent: Hypothesis, *, hypothesis_id: int, window: int) -> None:
         return None
 
+    def accepted(self, top: Hypothesis, consistent: np.ndarray) -> np.ndarray:
+        return consistent
+
     def final_trajectory(self, top: Hypothesis, accepted_ids: tuple[int, ...]) -> np.ndarray:
         return top.trajectory(self.chain)
 
@@ -131,14 +141,13 @@ class PaperModel:
 class _Conditioning:
     """A hypothesis' loops as a Gaussian-process update of the odometry random walk.
 
-    ``members`` index the loops used (at most ``max_covariance_loops``); ``k_inv`` is
-    ``(P_LL + W_L)⁻¹`` (``3n × 3n``) and ``position`` maps a constraint id to its member index.
+    ``m``, ``q`` are the frames of the loops used (at most ``covariance_loops``, evenly spread in
+    time) and ``k_inv`` is ``(A P_LL Aᵀ + R_L)⁻¹`` (``3n × 3n``, in the loops' local coordinates).
     """
 
     m: np.ndarray
     q: np.ndarray
     k_inv: np.ndarray
-    position: dict[int, int]
 
 
 class PlusModel:
@@ -197,7 +206,7 @@ class PlusModel:
         """The parent plus every constraint consistent with it, refined (new evidence)."""
         self._sync()
         all_ids = np.arange(len(self._m), dtype=np.int64)
-        ok = self.refinement(parent, all_ids)
+        ok = self.evaluate(parent, all_ids)[0]
         members = np.zeros(len(all_ids), dtype=bool)
         members[list(parent.constraint_ids)] = True
         extra = np.flatnonzero(ok & ~members)
@@ -212,10 +221,9 @@ class PlusModel:
         nodes, poses, chi2, odometry = self._solve_set(ids, parent)
         hypothesis = Hypothesis(hypothesis_id, parent.id, ids, window, nodes, poses, chi2=chi2, added_constraint_id=added)
         self._chain_chi2[hypothesis_id] = odometry
-        self._condition(hypothesis)
         all_ids = np.arange(len(self._m), dtype=np.int64)
         for _ in range(self.plus.closure_rounds):
-            ok = self.refinement(hypothesis, all_ids)
+            ok = self.evaluate(hypothesis, all_ids)[0]
             members = np.zeros(len(all_ids), dtype=bool)
             members[list(ids)] = True
             keep = members & ok
@@ -229,7 +237,6 @@ class PlusModel:
             nodes, poses, chi2, odometry = self._solve_set(ids, hypothesis)
             hypothesis = Hypothesis(hypothesis_id, parent.id, ids, window, nodes, poses, chi2=chi2, added_constraint_id=added)
             self._chain_chi2[hypothesis_id] = odometry
-            self._condition(hypothesis)
         return hypothesis
 
     def _eligible_mask(self) -> np.ndarray:
@@ -265,15 +272,16 @@ class PlusModel:
         return out
 
     def _condition(self, hypothesis: Hypothesis) -> _Conditioning:
-        """The hypothesis' loops as a Gaussian-process update, in each loop's local coordinates
-        (``e_l = Ad(O_q)⁻¹ (ξ_q - ξ_m)``, the tangent space of its factor's residual), where the
-        covariances have their natural, relative scale: ``K = A P Aᵀ + R`` over the members."""
+        """The hypothesis' loops (at most ``covariance_loops``, evenly spread in time) as a Gaussian-
+        process update of the odometry random walk, in each loop's local coordinates
+        (``e_l = Ad(X_q)⁻¹ (ξ_q - ξ_m)``, the tangent space of its factor's residual):
+        ``K = A P Aᵀ + R`` over those loops, inverted once per hypothesis."""
         cond = self._cond.get(hypothesis.id)
         if cond is not None:
             return cond
         ids = np.asarray(hypothesis.constraint_ids, dtype=np.int64)
-        if len(ids) > self.plus.max_covariance_loops:  # evenly spread subset (conservative covariance)
-            pick = np.linspace(0, len(ids) - 1, self.plus.max_covariance_loops).round().astype(np.int64)
+        if len(ids) > self.plus.covariance_loops:
+            pick = np.linspace(0, len(ids) - 1, self.plus.covariance_loops).round().astype(np.int64)
             ids = ids[np.argsort(self._q[ids], kind="stable")][pick]
         m, q = self._m[ids], self._q[ids]
         n = len(ids)
@@ -288,18 +296,22 @@ class PlusModel:
             k_inv = _spd_inverse(k)
         else:
             k_inv = np.zeros((0, 0))
-        cond = _Conditioning(m, q, k_inv, {int(c): j for j, c in enumerate(ids)})
+        cond = _Conditioning(m, q, k_inv)
         self._cond[hypothesis.id] = cond
         return cond
 
     def mahalanobis(self, hypothesis: Hypothesis, constraint_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Innovation of each constraint under the hypothesis (non-members: given the hypothesis'
-        graph; members: leave-one-out, given the graph without it).
+        """Innovation test of each constraint under the hypothesis.
+
+        The innovation ``r = Log(z⁻¹ x_m⁻¹ x_q)`` at the hypothesis' solution has covariance
+        ``C = R + Σ_pred``, with ``Σ_pred`` the covariance of the relative pose ``x_m⁻¹ x_q`` given
+        the odometry (a random walk linearised along the hypothesis) and the hypothesis' loops
+        (:meth:`_condition`). Leaving loops out of the conditioning only makes ``Σ_pred`` larger, so
+        the test errs towards "consistent"; it is meaningful for constraints outside the
+        hypothesis (for its own members, the residual at the solution is tested instead).
 
         Returns:
-            ``(d2 (K,), chi2 (K,))``: squared Mahalanobis distance ``rᵀ C⁻¹ r`` of the innovation
-            (``C`` includes the hypothesis' uncertainty), and the plain whitened residual
-            ``rᵀ R⁻¹ r`` at the hypothesis' solution (``R`` the measurement covariance).
+            ``(d2 (K,), chi2 (K,))``: ``rᵀ C⁻¹ r``, and the plain whitened residual ``rᵀ R⁻¹ r``.
         """
         self._sync()
         ids = np.asarray(constraint_ids, dtype=np.int64)
@@ -320,17 +332,7 @@ class PlusModel:
             p_cl = p_cl.transpose(0, 2, 1, 3).reshape(len(ids), 3, 3 * n)
             prior = prior - (p_cl @ cond.k_inv) @ np.swapaxes(p_cl, -1, -2)
         cov = self._r[ids] + 0.5 * (prior + np.swapaxes(prior, -1, -2))
-        d2 = mahalanobis_d2(r, cov)
-        chi2 = mahalanobis_d2(r, self._r[ids])
-        member_rows = [(k, cond.position[int(c)]) for k, c in enumerate(ids) if int(c) in cond.position]
-        if member_rows:
-            rows = np.array([k for k, _ in member_rows])
-            pos = np.array([j for _, j in member_rows])
-            blocks = np.stack([cond.k_inv[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] for j in pos])
-            # leave-one-out innovation: u = R⁻¹ r,  d² = uᵀ B⁻¹ u  with B the member's block of K⁻¹
-            u = np.linalg.solve(self._r[ids[rows]], r[rows][..., None])[..., 0]
-            d2[rows] = mahalanobis_d2(u, blocks)
-        return d2, chi2
+        return mahalanobis_d2(r, cov), mahalanobis_d2(r, self._r[ids])
 
     def evaluate(self, hypothesis: Hypothesis, constraint_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Consistent: a constraint outside the hypothesis passes the chi-square test of its
@@ -349,11 +351,13 @@ class PlusModel:
         consistent = np.where(member, chi2 < gate, d2 < gate) & eligible
         return consistent, np.where(eligible, gate - np.minimum(chi2, gate), 0.0)
 
-    def refinement(self, hypothesis: Hypothesis, constraint_ids: np.ndarray) -> np.ndarray:
-        """``(K,)`` bool for the consensus refinement: innovation (non-members) or leave-one-out
-        innovation (members) below the gate."""
-        ids = np.asarray(constraint_ids, dtype=np.int64)
-        return (self.mahalanobis(hypothesis, ids)[0] < self.plus.gate_chi2) & self._eligible_mask()[ids]
+    def accepted(self, top: Hypothesis, consistent: np.ndarray) -> np.ndarray:
+        """The rank-1 hypothesis' own constraints whose residual at its solution passes the gate
+        (a constraint outside it that merely lies inside a loose covariance is not accepted; the
+        absorb step brings consistent ones inside at every window)."""
+        members = np.zeros(len(consistent), dtype=bool)
+        members[list(top.constraint_ids)] = True
+        return consistent & members
 
     def rank_key(self, hypothesis: Hypothesis, score: int, support: float) -> float:
         """``-J`` up to a constant: ``J = χ²_odometry + Σ_c min(χ²_c, gate)`` is the truncated-least-

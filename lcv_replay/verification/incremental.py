@@ -18,8 +18,9 @@ partial window):
 3. after each iteration the lowest-ranked hypotheses are pruned so that at most ``max_hypotheses``
    are kept (the odometry root is always kept and counts towards the bound);
 4. a :class:`~lcv_replay.verification.base.VerifierStep` reports the ranking, the generation edges,
-   the accepted constraints (those consistent with the rank-1 hypothesis), the top-k trajectories
-   and the table.
+   the accepted constraints (``ilv``: those consistent with the rank-1 hypothesis; ``ilv+``: the
+   rank-1 hypothesis' own constraints that its solution satisfies), the top-k trajectories and
+   the table.
 
 Space is bounded by ``max_hypotheses`` rows (plus one iteration's children) of ``C`` booleans and
 each hypothesis' nodes; nothing grows with the square of the log length.
@@ -85,6 +86,10 @@ class HypothesisModel(Protocol):
     def absorb(self, parent: Hypothesis, *, hypothesis_id: int, window: int) -> Hypothesis | None:
         """A child of ``parent`` that also optimises the constraints consistent with it (new
         evidence for the same world), or ``None`` (``ilv``: the paper has no such step)."""
+
+    def accepted(self, top: Hypothesis, consistent: np.ndarray) -> np.ndarray:
+        """``(C,)`` bool: the accepted loop closures given the rank-1 hypothesis and its row
+        (``ilv``: the row itself, paper sec. II-A)."""
 
     def final_trajectory(self, top: Hypothesis, accepted_ids: tuple[int, ...]) -> np.ndarray:
         """``(N, 3)``: the trajectory reported in the result."""
@@ -287,7 +292,8 @@ class IncrementalVerifier:
         summaries = tuple(self._summary(h, rank) for rank, h in enumerate(ranking_ids, start=1))
         by_id = {s.id: s for s in summaries}
         top = ranking_ids[0]
-        accepted = tuple(int(i) for i in np.flatnonzero(self.table.row(top) & self._eligible))
+        accepted_mask = self.model.accepted(self.hypotheses[top], self.table.row(top)) & self._eligible
+        accepted = tuple(int(i) for i in np.flatnonzero(accepted_mask))
         top_k = ranking_ids[: self.config.top_k_trajectories]
         trajectories = {h: self.hypotheses[h].trajectory(self.chain) for h in top_k}
         timings["total"] = time.perf_counter() - start

@@ -79,7 +79,13 @@ def test_ilv_plus_keeps_precision_with_far_false_loops():
     assert set(result.paper_consistent_ids) >= accepted
 
 
-def test_leave_one_out_equals_the_innovation_without_the_member():
+def test_innovation_covariance_matches_gtsam_marginals():
+    """ilv+'s Gaussian-process innovation equals the one from GTSAM's marginal covariances of the
+    same graph, and shows an error that the solution including the loop hides."""
+    import gtsam
+
+    from lcv_replay.verification import pose_graph as pg
+
     world = circle_world(num_false=0, yaw_bias_rad=0.0005)
     loops = [_measured(world, q, q - world.frames_per_lap) for q in range(world.frames_per_lap + 5, len(world.odom), 10)]
     bad = loops[14]
@@ -91,14 +97,27 @@ def test_leave_one_out_equals_the_innovation_without_the_member():
     model = verifier.model
     model.plus = dataclasses.replace(model.plus, closure_rounds=0)  # keep the member sets as given
     root = Hypothesis(0, None, (), 0, np.zeros(1, dtype=np.int64), world.odom[:1].copy())
-    members = (2, 6, 10, 12, 13, 14)
-    with_all = model.solve(root, members, hypothesis_id=1, window=0, added=14)
-    without = model.solve(root, members[:-1], hypothesis_id=2, window=0, added=13)
-    loo, in_sample = (v[0] for v in model.mahalanobis(with_all, np.array([14])))
+    members = (2, 6, 10, 12, 13)
+    without = model.solve(root, members, hypothesis_id=1, window=0, added=13)
+    with_bad = model.solve(root, members + (14,), hypothesis_id=2, window=0, added=14)
     innovation = model.mahalanobis(without, np.array([14]))[0][0]
-    assert innovation > 10.0  # the 1.8 m error is visible ...
-    assert in_sample < 0.5 * innovation  # ... but the solution that includes it hides it
-    assert loo == pytest.approx(innovation, rel=0.1)  # the leave-one-out test recovers it
+    in_sample = model.mahalanobis(with_bad, np.array([14]))[1][0]
+    # the same innovation from GTSAM: full graph, marginal covariance of (x_m, x_q)
+    cons = verifier.history.constraints
+    graph = pg.build_graph(world.odom, ODOM_INFORMATION, [cons[c] for c in members], loop_default_information=ODOM_INFORMATION)
+    full = pg.optimise_lm(graph, world.odom).poses
+    c14 = cons[14]
+    joint = gtsam.Marginals(graph, pg.initial_values(full)).jointMarginalCovariance(
+        gtsam.KeyVector([c14.match_frame, c14.query_frame])
+    ).fullMatrix()
+    rel = gtsam.Pose2(*full[c14.match_frame]).between(gtsam.Pose2(*full[c14.query_frame]))
+    jac = np.hstack([-rel.inverse().AdjointMap(), np.eye(3)])
+    z, info = pg.loop_measurement(c14, ODOM_INFORMATION)
+    r = gtsam.Pose2.Logmap(gtsam.Pose2(*z).between(rel))
+    expected = r @ np.linalg.solve(np.linalg.inv(info) + jac @ joint @ jac.T, r)
+    assert innovation == pytest.approx(expected, rel=0.05)
+    assert innovation > 10.0  # the 1.8 m error is visible before the loop is added ...
+    assert in_sample < 0.5 * innovation  # ... and partly hidden by a solution that includes it
 
 
 def test_robustslam_kitti_06_alpha_050():
