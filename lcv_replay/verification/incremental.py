@@ -10,26 +10,30 @@ partial window):
 
 1. the constraints that arrived during the window add columns to the table (every kept hypothesis
    is tested against them; nothing else is recomputed, see :mod:`~.consistency`);
-2. ``iterations_per_window`` iterations; each takes the ``hypotheses_per_iteration`` top-ranked
+2. (``ilv+`` only) the top hypotheses absorb the new constraints consistent with them
+   (:meth:`HypothesisModel.absorb`; generation edge ``(parent, child, ABSORBED)``);
+3. ``iterations_per_window`` iterations; each takes the ``hypotheses_per_iteration`` top-ranked
    hypotheses (ranking refreshed every iteration) and extends each by one constraint drawn by
    sequential selection (:mod:`~.hypotheses`); each child is solved warm-started from its parent
    and adds one row to the table. With the paper's 10 × 10 that is ``N_g = 100`` per window. A
    parent is never extended twice by the same constraint (the child would be the same);
-3. after each iteration the lowest-ranked hypotheses are pruned so that at most ``max_hypotheses``
+4. after each iteration the lowest-ranked hypotheses are pruned so that at most ``max_hypotheses``
    are kept (the odometry root is always kept and counts towards the bound);
-4. a :class:`~lcv_replay.verification.base.VerifierStep` reports the ranking, the generation edges,
+5. a :class:`~lcv_replay.verification.base.VerifierStep` reports the ranking, the generation edges,
    the accepted constraints (``ilv``: those consistent with the rank-1 hypothesis; ``ilv+``: the
    rank-1 hypothesis' own constraints that its solution satisfies), the top-k trajectories and
    the table.
 
-Space is bounded by ``max_hypotheses`` rows (plus one iteration's children) of ``C`` booleans and
-each hypothesis' nodes; nothing grows with the square of the log length.
+Space is bounded by ``max_hypotheses`` rows (plus one iteration's children) of ``C`` entries and
+each kept hypothesis' nodes (``ilv``: every frame; ``ilv+``: its loop endpoints): linear in the
+log length and the history, never quadratic.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass, field
 from typing import Callable, Protocol, Sequence
 
 import numpy as np
@@ -96,6 +100,16 @@ class HypothesisModel(Protocol):
 
 
 ModelFactory = Callable[[OdometryChain, ConstraintHistory, VerificationConfig], HypothesisModel]
+
+
+@dataclass
+class _Generation:
+    """What one window end generated (for its :class:`VerifierStep`)."""
+
+    timings: dict[str, float]
+    edges: list[tuple[int, int, int]] = field(default_factory=list)
+    created: list[int] = field(default_factory=list)
+    dropped: list[tuple[int, str]] = field(default_factory=list)
 
 
 class IncrementalVerifier:
@@ -214,39 +228,18 @@ class IncrementalVerifier:
             self.table.add_constraints(ids, block, support)
         timings["columns"] += time.perf_counter() - t
         # 2-3. generation and pruning
-        edges: list[tuple[int, int, int]] = []
-        created: list[int] = []
-        dropped: list[tuple[int, str]] = []
+        gen = _Generation(timings)
         all_ids = np.arange(len(constraints), dtype=np.int64)
         if new_ids.size:
             for parent_id in self.ranked_ids()[: self.config.hypotheses_per_iteration]:
-                child_id = self._next_id
-                t = time.perf_counter()
-                try:
-                    child = self.model.absorb(self.hypotheses[parent_id], hypothesis_id=child_id, window=self._window)
-                except OptimisationFailed as exc:
-                    log.warning("%s: dropped hypothesis %d (parent %d + its consistent constraints): %s", self.name, child_id, parent_id, exc.message)
-                    self._next_id += 1
-                    dropped.append((child_id, f"optimiser failure: {exc.message}"))
-                    continue
-                finally:
-                    timings["optimise"] += time.perf_counter() - t
-                if child is None:
-                    continue
-                self._next_id += 1
-                edges.append((parent_id, child_id, ABSORBED))
-                if child.constraint_set in self._sets:
-                    dropped.append((child_id, f"same constraint set as hypothesis {self._sets[child.constraint_set]}"))
-                    self.model.forget(child_id)
-                    continue
-                t = time.perf_counter()
-                self._keep(child, *self.model.evaluate(child, all_ids))
-                timings["rows"] += time.perf_counter() - t
-                created.append(child_id)
+                parent = self.hypotheses[parent_id]
+                self._try_child(
+                    gen, parent_id, ABSORBED, all_ids,
+                    lambda child_id: self.model.absorb(parent, hypothesis_id=child_id, window=self._window),
+                )
         for _ in range(self.config.iterations_per_window):
-            parents = self.ranked_ids()[: self.config.hypotheses_per_iteration]
             grew = False
-            for parent_id in parents:
+            for parent_id in self.ranked_ids()[: self.config.hypotheses_per_iteration]:
                 parent = self.hypotheses[parent_id]
                 tried = self._tried.setdefault(parent_id, set())
                 eligible = self._eligible.copy()
@@ -256,34 +249,17 @@ class IncrementalVerifier:
                 if added is None:
                     continue
                 tried.add(added)
-                child_id = self._next_id
-                self._next_id += 1
-                t = time.perf_counter()
-                try:
-                    child = self.model.solve(
+                grew |= self._try_child(
+                    gen, parent_id, added, all_ids,
+                    lambda child_id: self.model.solve(
                         parent, parent.constraint_ids + (added,), hypothesis_id=child_id, window=self._window, added=added
-                    )
-                except OptimisationFailed as exc:
-                    log.warning("%s: dropped hypothesis %d (parent %d + constraint %d): %s", self.name, child_id, parent_id, added, exc.message)
-                    dropped.append((child_id, f"optimiser failure: {exc.message}"))
-                    continue
-                finally:
-                    timings["optimise"] += time.perf_counter() - t
-                edges.append((parent_id, child_id, added))
-                if child.constraint_set in self._sets:
-                    dropped.append((child_id, f"same constraint set as hypothesis {self._sets[child.constraint_set]}"))
-                    self.model.forget(child_id)
-                    continue
-                t = time.perf_counter()
-                self._keep(child, *self.model.evaluate(child, all_ids))
-                timings["rows"] += time.perf_counter() - t
-                created.append(child_id)
-                grew = True
+                    ),
+                )
             t = time.perf_counter()
             kept, pruned = prune(self.ranked_ids(), self.config.max_hypotheses, keep={0})
             for rank, h in enumerate(pruned, start=len(kept) + 1):
                 self._forget(h)
-                dropped.append((h, f"pruned at rank {rank}"))
+                gen.dropped.append((h, f"pruned at rank {rank}"))
             timings["prune"] += time.perf_counter() - t
             if not grew:
                 break  # nothing left to draw for the top hypotheses
@@ -301,14 +277,14 @@ class IncrementalVerifier:
             frame_index=n - 1,
             window_index=self._window,
             new_constraint_ids=tuple(int(i) for i in new_ids),
-            new_hypotheses=tuple(by_id[h] for h in created if h in by_id),
-            generation_edges=tuple(edges),
+            new_hypotheses=tuple(by_id[h] for h in gen.created if h in by_id),
+            generation_edges=tuple(gen.edges),
             ranking=summaries,
             accepted_constraint_ids=accepted,
             trajectories=trajectories,
             consistency=self.table.matrix(ranking_ids),
             timings_s=timings,
-            dropped=tuple(dropped),
+            dropped=tuple(gen.dropped),
         )
         self._window += 1
         self._stepped_frames = n
@@ -316,6 +292,35 @@ class IncrementalVerifier:
         return step
 
     # ------------------------------------------------------------------ internals
+    def _try_child(self, gen: "_Generation", parent_id: int, added: int, all_ids: np.ndarray, make: Callable[[int], Hypothesis | None]) -> bool:
+        """Create one child with ``make(child_id)``; keep it unless it fails, is ``None`` or repeats
+        a kept constraint set. Returns whether a hypothesis was kept."""
+        child_id = self._next_id
+        t = time.perf_counter()
+        try:
+            child = make(child_id)
+        except OptimisationFailed as exc:
+            what = "its consistent constraints" if added == ABSORBED else f"constraint {added}"
+            log.warning("%s: dropped hypothesis %d (parent %d + %s): %s", self.name, child_id, parent_id, what, exc.message)
+            self._next_id += 1
+            gen.dropped.append((child_id, f"optimiser failure: {exc.message}"))
+            return False
+        finally:
+            gen.timings["optimise"] += time.perf_counter() - t
+        if child is None:
+            return False
+        self._next_id += 1
+        gen.edges.append((parent_id, child_id, added))
+        if child.constraint_set in self._sets:
+            gen.dropped.append((child_id, f"same constraint set as hypothesis {self._sets[child.constraint_set]}"))
+            self.model.forget(child_id)
+            return False
+        t = time.perf_counter()
+        self._keep(child, *self.model.evaluate(child, all_ids))
+        gen.timings["rows"] += time.perf_counter() - t
+        gen.created.append(child_id)
+        return True
+
     def _keep(self, hypothesis: Hypothesis, row: np.ndarray, support: np.ndarray | None = None) -> None:
         self.table.add_hypothesis(hypothesis.id, row, support)
         self.hypotheses[hypothesis.id] = hypothesis
