@@ -43,7 +43,7 @@ class IlvPlusConfig:
     short in time to be loop closures, and refines each drawn hypothesis to its consensus set.
     """
 
-    gate_chi2: float = 16.27  # Mahalanobis gate, chi2(3 dof) quantile 0.999
+    gate_chi2: float = 11.34  # chi-square gate (3 dof, 0.99; GTSAM GNC-TLS default inlier threshold)
     min_loop_gap_frames: int = 0  # drop candidates closer in time (retrieval already excludes Δt, sec. II-B)
     closure_rounds: int = 2  # consensus refinement rounds per drawn hypothesis (0 = the paper's child)
     covariance_loops: int = 24  # loops of a hypothesis (evenly spread in time) conditioning the innovation covariance (cost bound)

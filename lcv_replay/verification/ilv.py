@@ -22,7 +22,7 @@ windows, pruning) and changes what the paper leaves weak:
    condition it (a Gaussian-process update), so the test is tight where the hypothesis has closed
    loops and loose after a long open traverse. A constraint outside the hypothesis is consistent
    when its innovation passes the chi-square gate, ``rᵀ (R + Σ_pred)⁻¹ r < gate_chi2`` (3 dof,
-   0.999); a constraint inside it when its residual at the solution does, ``rᵀ R⁻¹ r < gate_chi2``.
+   0.99); a constraint inside it when its residual at the solution does, ``rᵀ R⁻¹ r < gate_chi2``.
 2. **Ranking by the truncated-least-squares cost** ``J = χ²_odometry + Σ_c min(χ²_c, gate)`` of the
    hypothesis' solution over the whole history (the objective GNC-TLS minimises), instead of the
    count of consistent constraints. Bending the odometry to satisfy a false loop, or a group of
