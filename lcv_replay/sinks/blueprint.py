@@ -6,7 +6,7 @@ Entity paths are named after what they hold, so that a user (or a test) finds th
 ``/camera/left``                left image, every ``image_every``-th frame (JPEG)
 ``/camera/right``               right image (``rerun.log_right_image``)
 ``/retrieval/code``             the query's binary code as a 1 × N_b image (white = 1)
-``/retrieval/distances``        L2 distances of the top-N re-ranked matches, by rank (bar chart)
+``/retrieval/distances``        L2 distance of the rank-r re-ranked match (one series per rank)
 ``/retrieval/matches``          the top-N matches: rank, frame, L2, Hamming (markdown table)
 ``/retrieval/lines``            query → match lines on the map
 ``/constraints/segments``       every judged constraint as a segment on the rank-1 map, coloured by
@@ -105,7 +105,7 @@ def default_blueprint(*, has_images: bool, has_retrieval: bool):
         middle.append(
             rrb.Vertical(
                 rrb.Spatial2DView(name="Query code", origin=RETRIEVAL_CODE),
-                rrb.BarChartView(name="Retrieval L2 distance by rank", origin=RETRIEVAL_DISTANCES),
+                rrb.TimeSeriesView(name="Retrieval L2 distance by rank", origin=RETRIEVAL_DISTANCES),
                 rrb.TextDocumentView(name="Retrieved frames", origin=RETRIEVAL_MATCHES),
                 row_shares=[1, 2, 3],
             )

@@ -100,6 +100,35 @@ def _inverse(pose: np.ndarray) -> np.ndarray:
     return se2_between(pose, np.zeros(3))
 
 
+class GrowingRows:
+    """An ``(N, width)`` array grown by appending rows (capacity doubles: amortised O(1))."""
+
+    def __init__(self, width: int, dtype=np.float64, capacity: int = 1024):
+        self._buffer = np.zeros((capacity, width), dtype=dtype)
+        self._count = 0
+
+    def __len__(self) -> int:
+        return self._count
+
+    @property
+    def view(self) -> np.ndarray:
+        """The filled ``(N, width)`` rows (a view: do not modify)."""
+        return self._buffer[: self._count]
+
+    def extend(self, rows: np.ndarray) -> None:
+        rows = np.asarray(rows, dtype=self._buffer.dtype).reshape(-1, self._buffer.shape[1])
+        needed = self._count + len(rows)
+        if needed > len(self._buffer):
+            grown = np.zeros((max(needed, 2 * len(self._buffer)), self._buffer.shape[1]), dtype=self._buffer.dtype)
+            grown[: self._count] = self.view
+            self._buffer = grown
+        self._buffer[self._count : needed] = rows
+        self._count = needed
+
+    def append(self, row: Sequence[float]) -> None:
+        self.extend(np.asarray(row)[None, :])
+
+
 class MapEstimate:
     """The current best map: the rank-1 trajectory of the latest step, extended by odometry.
 
@@ -108,18 +137,17 @@ class MapEstimate:
     """
 
     def __init__(self) -> None:
-        self._buffer = np.zeros((1024, 3), dtype=np.float64)  # odometry rows, capacity doubles
-        self._count = 0
+        self._odom = GrowingRows(3)
         self._best = np.zeros((0, 3), dtype=np.float64)
 
     @property
     def frames(self) -> int:
-        return self._count
+        return len(self._odom)
 
     @property
     def odometry(self) -> np.ndarray:
         """``(N, 3)`` odometry poses so far (a view: do not modify)."""
-        return self._buffer[: self._count]
+        return self._odom.view
 
     @property
     def optimised_frames(self) -> int:
@@ -128,17 +156,12 @@ class MapEstimate:
 
     def add_odometry(self, pose: Sequence[float]) -> None:
         """Append the next frame's cumulative odometry ``(3,)``."""
-        if self._count == len(self._buffer):
-            grown = np.zeros((2 * len(self._buffer), 3), dtype=np.float64)
-            grown[: self._count] = self._buffer
-            self._buffer = grown
-        self._buffer[self._count] = np.asarray(pose, dtype=np.float64)
-        self._count += 1
+        self._odom.append(pose)
 
     def set_best(self, trajectory: np.ndarray) -> None:
         """Replace the optimised prefix with the ``(M, 3)`` rank-1 trajectory (``M <= N``)."""
         trajectory = np.asarray(trajectory, dtype=np.float64)
-        self._best = trajectory[: self._count].copy()
+        self._best = trajectory[: self.frames].copy()
 
     def poses(self) -> np.ndarray:
         """``(N, 3)`` best poses of every frame so far."""
@@ -148,7 +171,7 @@ class MapEstimate:
 
     def position_of(self, frame: int) -> tuple[float, float]:
         """Best position of one frame (``< N``); plain float maths, for the per-frame hot path."""
-        odom = self._buffer
+        odom = self.odometry
         m = len(self._best)
         if m == 0:
             return float(odom[frame, 0]), float(odom[frame, 1])

@@ -38,6 +38,7 @@ from lcv_replay.sinks.base import BaseSink, FrameUpdate, RetrievalUpdate, RunSta
 from lcv_replay.sinks.layout import (
     STATE_STYLE,
     ConstraintState,
+    GrowingRows,
     MapEstimate,
     anchor_to_first,
     consistency_rows,
@@ -48,7 +49,6 @@ from lcv_replay.sinks.layout import (
     retrieval_markdown,
     segments,
 )
-from lcv_replay.verification.base import Constraint
 
 logger = logging.getLogger(__name__)
 
@@ -96,6 +96,54 @@ class _Columns:
                 rec.send_columns(path, indexes=_indexes(rows), columns=rr.Points2D.columns(positions=data[:, 2:4]))
         self._rows.clear()
         self._points.clear()
+
+
+class _RetrievalColumns:
+    """Per-query retrieval panels buffered for ``rr.send_columns`` (code, matches table, map lines).
+
+    A query with no match still gets a row (an empty set of lines, "nothing retrieved"), so that
+    the panels never show a previous query's matches.
+    """
+
+    def __init__(self, code_bits: int, top_k: int) -> None:
+        self._format = rr.components.ImageFormat(width=code_bits, height=1, color_model="L", channel_datatype="U8")
+        self._top_k = top_k
+        self._rows: list[tuple[int, int]] = []
+        self._codes: list[np.ndarray] = []
+        self._texts: list[str] = []
+        self._ends: list[np.ndarray] = []  # (K, 2, 2) per query
+        self._matches: list[np.ndarray] = []
+        self._l2: list[np.ndarray] = []
+
+    def add(self, frame: int, stamp_ns: int, code: np.ndarray, text: str, ends: np.ndarray, matches: np.ndarray, l2: np.ndarray) -> None:
+        self._rows.append((frame, stamp_ns))
+        self._codes.append(np.asarray(code, dtype=bool).astype(np.uint8) * 255)
+        self._texts.append(text)
+        self._ends.append(ends)
+        self._matches.append(matches)
+        self._l2.append(l2)
+
+    def flush(self, rec: rr.RecordingStream) -> None:
+        if not self._rows:
+            return
+        indexes = _indexes(self._rows)
+        n = len(self._rows)
+        rec.send_columns(bp.RETRIEVAL_CODE, indexes=indexes, columns=rr.Image.columns(buffer=self._codes, format=[self._format] * n))
+        rec.send_columns(bp.RETRIEVAL_MATCHES, indexes=indexes,
+                         columns=rr.TextDocument.columns(text=self._texts, media_type=[rr.MediaType.MARKDOWN] * n))
+        # L2 distance of rank r = instance r - 1 (NaN: fewer matches), one time series per rank.
+        distances = np.full((n, self._top_k), np.nan)
+        for row, l2 in enumerate(self._l2):
+            distances[row, : min(len(l2), self._top_k)] = l2[: self._top_k]
+        rec.send_columns(bp.RETRIEVAL_DISTANCES, indexes=indexes,
+                         columns=rr.Scalars.columns(scalars=distances.reshape(-1)).partition([self._top_k] * n))
+        lengths = [len(e) for e in self._ends]
+        strips = [strip for ends in self._ends for strip in ends]
+        rec.send_columns(bp.RETRIEVAL_LINES, indexes=indexes, columns=[
+            *rr.LineStrips2D.columns(strips=strips).partition(lengths),
+            *rr.AnyValues.columns(match_frame=np.concatenate(self._matches), l2_distance=np.concatenate(self._l2)).partition(lengths),
+        ])
+        self.__init__(int(self._format.width), self._top_k)
 
 
 def _indexes(rows: Sequence[tuple]) -> list:
@@ -184,10 +232,10 @@ class RerunSink(BaseSink):
         self._tmp_path: Path | None = None
         self._finished = False
         self._columns = _Columns()
+        self._retrieval: _RetrievalColumns | None = None  # created at the first query
         self._map = MapEstimate()
         self._start: RunStart | None = None
-        self._constraints: list[Constraint] = []
-        self._truth: list[bool | None] = []
+        self._constraint_rows = GrowingRows(3, dtype=np.int64)  # id, query_frame, match_frame
         self._judged = 0
         self._last_pending_frame = -(10**9)
         self._accepted: set[int] = set()
@@ -213,6 +261,7 @@ class RerunSink(BaseSink):
         rec = rr.RecordingStream(APPLICATION_ID, recording_id=self._recording_id, send_properties=False, batcher_config=batcher)
         rec.set_log_time_enabled(False)  # our log_time is the MCAP's, not the wall clock
         rec.set_log_tick_enabled(False)
+        self._rec = rec  # from here on, close() cleans up (server, temp file) whatever fails next
         sinks: list[Any] = []
         memory_limit = self.outputs.memory_limit or self.config.memory_limit
         if self.outputs.save is not None:
@@ -231,7 +280,6 @@ class RerunSink(BaseSink):
             self.served_url = web_viewer_url(self.outputs.web_port, grpc_url)
         blueprint = bp.default_blueprint(has_images=start.has_images, has_retrieval=start.code_bits is not None)
         rec.set_sinks(*sinks, default_blueprint=blueprint)
-        self._rec = rec
         rec.send_recording_name(f"{start.log_path.name} · {start.method}")
         rec.send_recording_start_time_nanos(int(start.start_ns))
         self._log_static(start)
@@ -249,6 +297,9 @@ class RerunSink(BaseSink):
             static=True,
         )
         rec.log(bp.REPORT, rr.TextDocument(self._report_markdown(None), media_type=rr.MediaType.MARKDOWN), static=True)
+        # Styles of the column-logged entities, static (rows carry only the data).
+        rec.log(bp.RETRIEVAL_LINES, rr.LineStrips2D.from_fields(radii=[_LINE], colors=[(60, 140, 250)], show_labels=False), static=True)
+        rec.log(bp.CONSTRAINTS_PENDING, rr.LineStrips2D.from_fields(radii=[_LINE], class_ids=[int(ConstraintState.PENDING)], show_labels=False), static=True)
         for name, color in (("precision", (40, 200, 80)), ("recall", (60, 140, 250)), ("ate_rmse_m", (240, 90, 40))):
             rec.log(bp.metric_path(name), rr.SeriesLines(colors=[color], names=[name]), static=True)
         if start.ground_truth is not None and len(start.ground_truth):
@@ -269,8 +320,8 @@ class RerunSink(BaseSink):
         self._map.add_odometry((odom.x_m, odom.y_m, odom.yaw_rad) if odom is not None else self._last_odom())
         if self._gt_display is not None and self._map.frames == 1:
             self._gt_display = anchor_to_first(self._gt_display, self._map.odometry[0])
-        self._constraints.extend(update.new_constraints)
-        self._truth.extend(update.new_constraint_truth)
+        if update.new_constraints:
+            self._constraint_rows.extend([(c.id, c.query_frame, c.match_frame) for c in update.new_constraints])
 
         every = self.config.image_every
         if every > 0 and frame.index % every == 0:
@@ -284,13 +335,18 @@ class RerunSink(BaseSink):
         self._columns.scalar(bp.metric_path("constraints"), frame.index, frame.stamp_ns, update.constraints_total)
         self._columns.scalar(bp.FRAME_TIME, frame.index, frame.stamp_ns, update.frame_time_s)
         if update.new_constraints:
-            pending = len(self._constraints) - self._judged
+            pending = len(self._constraint_rows) - self._judged
             if pending <= PENDING_FULL_LIMIT or frame.index - self._last_pending_frame >= PENDING_EVERY:
                 self._log_pending()
         if frame.index % TRAJECTORY_EVERY == 0:
             self._log_trajectories()
         if frame.index % COLUMN_FLUSH_FRAMES == COLUMN_FLUSH_FRAMES - 1:
-            self._columns.flush(rec)
+            self._flush_columns()
+
+    def _flush_columns(self) -> None:
+        self._columns.flush(self._rec)
+        if self._retrieval is not None:
+            self._retrieval.flush(self._rec)
 
     def _last_odom(self) -> tuple[float, float, float]:
         odom = self._map.odometry
@@ -309,21 +365,16 @@ class RerunSink(BaseSink):
         self._rec.log(path, rr.EncodedImage(contents=encoded.tobytes(), media_type="image/jpeg"))
 
     def _log_pending(self) -> None:
-        pending = self._constraints[self._judged :]
+        pending = self._constraint_rows.view[self._judged :]  # (P, 3): id, query, match
         self._last_pending_frame = self._frame
-        if not pending:
+        if not len(pending):
             self._rec.log(bp.CONSTRAINTS_PENDING, rr.Clear(recursive=False))
             return
-        pairs = np.array([(c.query_frame, c.match_frame) for c in pending], dtype=np.int64)
-        ends = self._map.positions_of(pairs.reshape(-1)).reshape(-1, 2, 2)
+        ends = self._map.positions_of(pending[:, 1:3].reshape(-1)).reshape(-1, 2, 2)
         self._rec.log(
             bp.CONSTRAINTS_PENDING,
-            rr.LineStrips2D(ends, radii=_LINE, class_ids=np.full(len(pending), int(ConstraintState.PENDING)), show_labels=False),
-            rr.AnyValues(
-                constraint_id=np.array([c.id for c in pending], dtype=np.int64),
-                query_frame=pairs[:, 0],
-                match_frame=pairs[:, 1],
-            ),
+            rr.LineStrips2D(ends),
+            rr.AnyValues(constraint_id=pending[:, 0], query_frame=pending[:, 1], match_frame=pending[:, 2]),
         )
 
     def _log_trajectories(self) -> None:
@@ -336,32 +387,25 @@ class RerunSink(BaseSink):
 
     # ------------------------------------------------------------------ retrieval
     def on_retrieval(self, update: RetrievalUpdate) -> None:
-        rec = self._rec
         frame = update.frame
-        self._set_time(frame.index, frame.stamp_ns)
-        if update.code is not None:
-            bits = np.asarray(update.code, dtype=bool).reshape(1, -1)
-            rec.log(bp.RETRIEVAL_CODE, rr.Image((bits * 255).astype(np.uint8)))
+        if update.code is None:  # warming up: no query was made
+            return
         self._columns.scalar(bp.metric_path("prefilter_size"), frame.index, frame.stamp_ns, update.prefilter_size)
         top = np.asarray(update.top_frames, dtype=np.int64).reshape(-1)
-        if len(top) == 0:
-            rec.log(bp.RETRIEVAL_LINES, rr.Clear(recursive=False))
-            rec.log(bp.RETRIEVAL_DISTANCES, rr.Clear(recursive=False))
-            rec.log(bp.RETRIEVAL_MATCHES, rr.TextDocument(f"**query frame {frame.index}**: nothing retrieved", media_type=rr.MediaType.MARKDOWN))
-            return
         l2 = np.asarray(update.l2_distances, dtype=np.float64).reshape(-1)
-        admitted = {int(c.match_frame) for c in update.candidates}
-        rec.log(bp.RETRIEVAL_DISTANCES, rr.BarChart(l2, color=(60, 140, 250)))
-        rec.log(
-            bp.RETRIEVAL_MATCHES,
-            rr.TextDocument(retrieval_markdown(frame.index, top, l2, update.hamming, admitted), media_type=rr.MediaType.MARKDOWN),
-        )
-        ends = self._map.positions_of(np.column_stack([np.full(len(top), frame.index), top]).reshape(-1)).reshape(-1, 2, 2)
-        rec.log(
-            bp.RETRIEVAL_LINES,
-            rr.LineStrips2D(ends, radii=_LINE, colors=[(60, 140, 250)], labels=[f"rank {r}: {int(m)}" for r, m in enumerate(top, 1)], show_labels=False),
-            rr.AnyValues(match_frame=top, l2_distance=l2),
-        )
+        if len(top):
+            admitted = {int(c.match_frame) for c in update.candidates}
+            text = retrieval_markdown(frame.index, top, l2, update.hamming, admitted)
+            query = self._map.position_of(frame.index)
+            ends = np.stack([np.broadcast_to(query, (len(top), 2)), self._map.positions_of(top)], axis=1)
+        else:
+            text = f"**query frame {frame.index}**: nothing retrieved"
+            ends = np.zeros((0, 2, 2))
+        if self._retrieval is None:
+            top_k = int(dict(self._start.config).get("retrieval", {}).get("top_k", max(len(top), 1)))
+            self._retrieval = _RetrievalColumns(len(update.code), top_k)
+            self._rec.log(bp.RETRIEVAL_DISTANCES, rr.SeriesLines(names=[f"rank {r}" for r in range(1, top_k + 1)]), static=True)
+        self._retrieval.add(frame.index, frame.stamp_ns, update.code, text, ends, top, l2)
 
     # ------------------------------------------------------------------ verifier steps
     def on_step(self, update: StepUpdate) -> None:
@@ -378,8 +422,9 @@ class RerunSink(BaseSink):
         rec = self._rec
         step = update.step
         constraints = list(update.constraints)
-        self._constraints = constraints
-        self._truth = list(update.constraint_truth)
+        truth = list(update.constraint_truth)
+        self._constraint_rows = GrowingRows(3, dtype=np.int64)
+        self._constraint_rows.extend([(c.id, c.query_frame, c.match_frame) for c in constraints])
         ranking = step.ranking
         top_k = self.config.top_hypotheses
 
@@ -390,7 +435,7 @@ class RerunSink(BaseSink):
 
         # Constraints, coloured by state on that map.
         self._judged = len(constraints)
-        states = constraint_states(len(constraints), step.accepted_constraint_ids, self._truth)
+        states = constraint_states(len(constraints), step.accepted_constraint_ids, truth)
         if constraints:
             # Instances in drawing order: faint states first, wrong acceptances last (on top).
             order = np.argsort(DRAW_PRIORITY[states], kind="stable")
@@ -439,7 +484,7 @@ class RerunSink(BaseSink):
         self._log_events(update, states)
         self._log_metrics(update)
         self._log_trajectories()
-        self._columns.flush(rec)
+        self._flush_columns()
 
     def _log_tree(self, update: StepUpdate) -> None:
         step = update.step
@@ -528,7 +573,7 @@ class RerunSink(BaseSink):
     def on_finish(self, summary: RunSummary) -> None:
         if self._rec is None:
             return
-        self._columns.flush(self._rec)
+        self._flush_columns()
         self._log_trajectories_if_any()
         self._rec.log(bp.REPORT, rr.TextDocument(self._report_markdown(summary), media_type=rr.MediaType.MARKDOWN), static=True)
         self._rec.log(bp.REPORT_TIMING, rr.TextDocument(_timing_markdown(summary), media_type=rr.MediaType.MARKDOWN), static=True)

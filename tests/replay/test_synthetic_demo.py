@@ -86,13 +86,13 @@ def test_image_route_logs_camera_and_retrieval(demo_cache, tmp_path):
     assert min(queries) == 30  # warm-up: max(Δt, N_b + 1) = 30 frames, then every frame queries
     code = last_row(tables[bp.RETRIEVAL_CODE], "Image:buffer")[0]
     assert len(code) == 20 and set(code) <= {0, 255}
-    # The top-N table and bar chart of the last query agree; L2 distances sorted (best first).
-    distances = tables[bp.RETRIEVAL_DISTANCES]
-    bars = last_row(distances, "BarChart:values")[0]["buffer"]
-    heights = next(v for v in bars.values() if v is not None) if isinstance(bars, dict) else bars
-    assert heights == sorted(heights) and 1 <= len(heights) <= 5
+    # The last query's table and distance series agree; L2 distances sorted (best first).
+    row = [v for v in last_row(tables[bp.RETRIEVAL_DISTANCES], "Scalars:scalars") if v == v]  # drop NaN
+    assert row == sorted(row) and 1 <= len(row) <= 5
     text = last_row(tables[bp.RETRIEVAL_MATCHES], "TextDocument:text")[0]
-    assert text.count("\n| ") == len(heights) + 1  # header row + one row per match
+    assert text.count("\n| ") == len(row) + 1  # header row + one row per match
+    lines = tables[bp.RETRIEVAL_LINES]
+    assert len(last_row(lines, "LineStrips2D:strips")) == len(last_row(lines, "match_frame")) == len(row)
     data = json.loads(js.read_text())
     assert data["constraints"] == summary.constraints and data["constraint_source"] == "images"
 
