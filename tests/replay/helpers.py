@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lcv_replay.verification.pose_graph import se2_between, se2_compose
+
 
 # --------------------------------------------------------------------------------------- logs
 @dataclass(frozen=True)
@@ -29,14 +31,11 @@ class SquareRoute:
 
 
 def _compose(a, b):
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], math.atan2(math.sin(a[2] + b[2]), math.cos(a[2] + b[2])))
+    return tuple(se2_compose(np.asarray(a, float), np.asarray(b, float)))
 
 
 def _between(a, b):
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return (c * dx + s * dy, -s * dx + c * dy, math.atan2(math.sin(b[2] - a[2]), math.cos(b[2] - a[2])))
+    return tuple(se2_between(np.asarray(a, float), np.asarray(b, float)))
 
 
 def square_route_g2o(
