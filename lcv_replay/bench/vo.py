@@ -66,7 +66,12 @@ class DriftRow:
 
 @dataclass(frozen=True)
 class SpeedRow:
-    """Tracker throughput at one resolution (medians over ``runs``)."""
+    """Tracker throughput at one resolution (medians over ``runs``).
+
+    ``pairs_per_s`` is wall-clock throughput (it depends on what else runs on the machine, see
+    ``loadavg_1min``); ``cpu_ms_per_pair`` is the process CPU time per pair, all OpenCV threads
+    summed (closer to a machine-independent cost).
+    """
 
     resolution: str
     pairs: int
@@ -75,6 +80,7 @@ class SpeedRow:
     pairs_per_s_min: float
     pairs_per_s_max: float
     ms_per_pair: float
+    cpu_ms_per_pair: float
     with_png_decode_pairs_per_s: float
     opencv_threads: int
     loadavg_1min: float
@@ -268,9 +274,11 @@ def vo_speed(
     def decoded() -> Iterator[tuple[np.ndarray, np.ndarray]]:
         return prefetched(encoded, decode)  # as 'lcv-replay vo' decodes a log's images
 
-    rates, rates_png = [], []
+    rates, rates_png, cpu_ms = [], [], []
     for _ in range(max(1, runs)):
+        cpu_started = time.process_time()
         rates.append(run_vo(images, calibration, config).pairs_per_s)
+        cpu_ms.append(1000.0 * (time.process_time() - cpu_started) / len(images))
         rates_png.append(run_vo(decoded(), calibration, config).pairs_per_s)
     median = statistics.median(rates)
     return SpeedRow(
@@ -281,6 +289,7 @@ def vo_speed(
         pairs_per_s_min=min(rates),
         pairs_per_s_max=max(rates),
         ms_per_pair=1000.0 / median,
+        cpu_ms_per_pair=statistics.median(cpu_ms),
         with_png_decode_pairs_per_s=statistics.median(rates_png),
         opencv_threads=cv2.getNumThreads(),
         loadavg_1min=os.getloadavg()[0],

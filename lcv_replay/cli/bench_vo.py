@@ -59,6 +59,7 @@ SPEED_COLUMNS = [
     ("pairs_per_s_min", "min", ".1f"),
     ("pairs_per_s_max", "max", ".1f"),
     ("ms_per_pair", "ms/pair", ".1f"),
+    ("cpu_ms_per_pair", "CPU ms/pair", ".1f"),
     ("with_png_decode_pairs_per_s", "with PNG decode pairs/s", ".1f"),
     ("opencv_threads", "cv2 threads", "d"),
     ("loadavg_1min", "load avg", ".1f"),
