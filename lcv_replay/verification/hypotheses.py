@@ -110,11 +110,15 @@ def selectable_constraints(
     return ids.astype(np.int64)
 
 
-def draw_constraint(rng: np.random.Generator, candidates: np.ndarray) -> int | None:
-    """One id drawn uniformly from ``candidates`` (``None`` if empty)."""
+def draw_constraint(rng: np.random.Generator, candidates: np.ndarray, weights: np.ndarray | None = None) -> int | None:
+    """One id drawn from ``candidates`` (``None`` if empty): uniformly (the paper), or with
+    probabilities proportional to ``weights`` (``(K,)``, positive)."""
     if len(candidates) == 0:
         return None
-    return int(candidates[rng.integers(len(candidates))])
+    if weights is None:
+        return int(candidates[rng.integers(len(candidates))])
+    weights = np.asarray(weights, dtype=np.float64)
+    return int(candidates[rng.choice(len(candidates), p=weights / weights.sum())])
 
 
 def rank_order(ids: list[int], keys: Mapping[int, float], tie_keys: Mapping[int, float] | None = None) -> list[int]:

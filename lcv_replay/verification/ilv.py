@@ -37,7 +37,9 @@ windows, pruning) and changes what the paper leaves weak:
    between them composed exactly with its covariance (first order); the other frames are the
    Brownian-bridge interpolation. The cost of a hypothesis depends on its loops, not on the log
    length, so a smaller schedule (3 × 5 children, 50 kept) runs far faster than the paper's.
-5. Accepted = the rank-1 hypothesis' own constraints that its solution satisfies.
+5. **Sequential selection weighted by plausibility**: the drawn constraint is still one
+   inconsistent with the parent, but nearly consistent ones are preferred (:meth:`PlusModel.draw_weights`).
+6. Accepted = the rank-1 hypothesis' own constraints that its solution satisfies.
    ``min_loop_gap_frames`` (default 0) can drop candidates too close in time.
 
 The reported trajectory of ``ilv+`` is the reduced-graph solution of its accepted set, interpolated.
@@ -123,6 +125,9 @@ class PaperModel:
         pass
 
     def absorb(self, parent: Hypothesis, *, hypothesis_id: int, window: int) -> None:
+        return None
+
+    def draw_weights(self, parent: Hypothesis, candidates: np.ndarray) -> None:
         return None
 
     def accepted(self, top: Hypothesis, consistent: np.ndarray) -> np.ndarray:
@@ -350,6 +355,16 @@ class PlusModel:
         member = np.fromiter((int(c) in hypothesis.constraint_set for c in ids), dtype=bool, count=len(ids))
         consistent = np.where(member, chi2 < gate, d2 < gate) & eligible
         return consistent, np.where(eligible, gate - np.minimum(chi2, gate), 0.0)
+
+    def draw_weights(self, parent: Hypothesis, candidates: np.ndarray) -> np.ndarray:
+        """Sequential selection draws among the constraints inconsistent with the parent; ``ilv+``
+        prefers the nearly consistent ones, ``w = exp(-(d² - gate) / (2 gate))``, floored at
+        ``1e-3`` so that any inconsistent constraint can still be tried. A true loop that only a
+        joint correction can satisfy (its innovation just above the gate) is then tried long
+        before the hundreds of far-off false candidates."""
+        d2 = self.mahalanobis(parent, candidates)[0]
+        gate = self.plus.gate_chi2
+        return np.maximum(np.exp(-np.maximum(d2 - gate, 0.0) / (2.0 * gate)), 1e-3)
 
     def accepted(self, top: Hypothesis, consistent: np.ndarray) -> np.ndarray:
         """The rank-1 hypothesis' own constraints whose residual at its solution passes the gate

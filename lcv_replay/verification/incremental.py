@@ -91,6 +91,10 @@ class HypothesisModel(Protocol):
         """A child of ``parent`` that also optimises the constraints consistent with it (new
         evidence for the same world), or ``None`` (``ilv``: the paper has no such step)."""
 
+    def draw_weights(self, parent: Hypothesis, candidates: np.ndarray) -> np.ndarray | None:
+        """Weights of the constraints a child of ``parent`` may be drawn with, or ``None`` for a
+        uniform draw (``ilv``, the paper)."""
+
     def accepted(self, top: Hypothesis, consistent: np.ndarray) -> np.ndarray:
         """``(C,)`` bool: the accepted loop closures given the rank-1 hypothesis and its row
         (``ilv``: the row itself, paper sec. II-A)."""
@@ -245,7 +249,7 @@ class IncrementalVerifier:
                 eligible = self._eligible.copy()
                 eligible[list(tried)] = False  # the same draw from the same parent gives the same child
                 choices = selectable_constraints(parent, self.table.row(parent_id), eligible=eligible, existing_sets=self._sets)
-                added = draw_constraint(self.rng, choices)
+                added = draw_constraint(self.rng, choices, self.model.draw_weights(parent, choices) if len(choices) else None)
                 if added is None:
                     continue
                 tried.add(added)
