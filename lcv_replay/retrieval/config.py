@@ -36,7 +36,7 @@ class RetrievalConfig:
     thumbnail_patch_px: int = 8  # patch normalisation window
     # --- index and cache ---
     rerank: Literal["descriptor", "pca"] = "descriptor"  # L2 re-rank on full descriptors or PCA vectors
-    index_strategy: Literal["auto", "scan", "table"] = "auto"  # Hamming prefilter (retrieval/index.py)
+    index_strategy: Literal["auto", "scan", "table"] = "auto"  # Hamming prefilter; auto = scan (retrieval/index.py)
     cache: bool = True  # reuse descriptors across runs (retrieval/cache.py)
     cache_dir: str = ""  # "" = $LCV_CACHE_DIR, else $XDG_CACHE_HOME/lcv-replay/descriptors
 

@@ -115,8 +115,10 @@ def test_empty_index_and_bad_input(strategy):
         index.add(4, 1, np.zeros(5))
 
 
-def test_table_strategy_refuses_wide_codes_and_auto_falls_back_to_scan():
+def test_table_strategy_refuses_wide_codes_and_auto_is_scan():
     with pytest.raises(RetrievalError, match="at most 24 bits"):
         CodeIndex(code_bits=32, vector_dim=4, hamming_threshold=3, strategy="table")
-    assert CodeIndex(code_bits=32, vector_dim=4, hamming_threshold=3).strategy == "scan"
-    assert CodeIndex(code_bits=20, vector_dim=4, hamming_threshold=3).strategy == "table"
+    with pytest.raises(RetrievalError, match="8192 probes"):
+        CodeIndex(code_bits=24, vector_dim=4, hamming_threshold=6, strategy="table")
+    assert CodeIndex(code_bits=20, vector_dim=4, hamming_threshold=3).strategy == "scan"
+    assert CodeIndex(code_bits=20, vector_dim=4, hamming_threshold=3, strategy="table").strategy == "table"
