@@ -11,8 +11,8 @@ mkdir -p "$OUT"
 #    picked up from the sibling files kitti_00_GT.g2o and kitti_00_alpha_0.50_GT_LC.txt.
 lcv-replay record g2o "$DATA/kitti_00_alpha_0.50.g2o" -o "$OUT/kitti00_a050.mcap" --force
 
-# 2. Replay it with the paper's method (the default) and with the improved one.
-lcv-replay "$OUT/kitti00_a050.mcap" --save "$OUT/kitti00_ilv.rrd" --summary-json "$OUT/kitti00_ilv.json"
+# 2. Replay it with the paper's method and with the improved one (ilv+, the default).
+lcv-replay "$OUT/kitti00_a050.mcap" --method ilv --save "$OUT/kitti00_ilv.rrd" --summary-json "$OUT/kitti00_ilv.json"
 lcv-replay "$OUT/kitti00_a050.mcap" --method ilv+ --save "$OUT/kitti00_ilvplus.rrd" --summary-json "$OUT/kitti00_ilvplus.json"
 
 # 3. The wrong loop closures, and when they entered, straight from the recording.

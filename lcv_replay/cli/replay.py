@@ -94,7 +94,7 @@ def replay_command(
     rate: str = typer.Option("max", "--rate", "-r", help="Playback rate: 1.0 = real time by the log's timestamps; 'max' = as fast as possible."),
     start_offset: float = typer.Option(0.0, "--start-offset", help="Start this many seconds into the log."),
     duration: Optional[float] = typer.Option(None, "--duration", help="Replay only this many seconds."),
-    method: Optional[str] = typer.Option(None, "--method", "-m", help="Verifier: ilv, ilv+, none, ir-only, dcs, gm, cauchy, gnc, oracle (default: the config's, 'ilv')."),
+    method: Optional[str] = typer.Option(None, "--method", "-m", help="Verifier: ilv (the paper), ilv+, none, ir-only, dcs, gm, cauchy, gnc, oracle (default: the config's verification.method)."),
     constraints: Optional[ConstraintChoice] = typer.Option(None, "--constraints", case_sensitive=False, help="Loop constraints from our retrieval on the images, the log's /loop_candidates, or both (default: log if it has candidates, else images)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="TOML config over the paper defaults (unknown keys are refused)."),
     seed: Optional[int] = typer.Option(None, "--seed", help="Seed of retrieval and verification (default: the config's)."),
