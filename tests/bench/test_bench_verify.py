@@ -182,6 +182,9 @@ def test_suite_runs_builds_once_and_reuses_the_logs(tmp_path):
     assert events[-1].done == events[-1].total == 2
     oracle = next(s for s in summarise(report.rows, report.methods) if s.method == "oracle")
     assert (oracle.mean_precision, oracle.mean_recall, oracle.max_ate_over_oracle) == (1.0, 1.0, 1.0)
+    assert (oracle.pooled_precision, oracle.pooled_recall) == (1.0, 1.0)
+    none = next(s for s in summarise(report.rows, report.methods) if s.method == "none")
+    assert (none.pooled_precision, none.pooled_recall, none.no_false_positive_cases) == (None, 0.0, 1)
     json.dumps(report.as_dict())
 
 
@@ -198,7 +201,7 @@ def test_cli_bench_suite_from_a_toml_file(tmp_path):
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     assert "| kitti07-a0.50 | oracle | 1.000 | 1.000 |" in result.output
-    assert "| method | cases | mean P |" in result.output
+    assert "| method | cases | P pooled | R pooled |" in result.output
     report = json.loads(out.read_text())
     assert report["complete"] and report["methods"] == ["dcs", "oracle"]
     assert report["config"]["baselines"]["solve_every"] == "end"
