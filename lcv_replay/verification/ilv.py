@@ -208,40 +208,69 @@ class PlusModel:
         return nodes, solution.poses, solution.chi2, odometry
 
     def absorb(self, parent: Hypothesis, *, hypothesis_id: int, window: int) -> Hypothesis | None:
-        """The parent plus every constraint consistent with it, refined (new evidence)."""
+        """The parent plus every constraint consistent with it, refined (new evidence).
+
+        If that child ranks below its parent (the looser tests let in loops that bend it), the
+        child absorbs only the constraints the parent's solution already satisfies."""
         self._sync()
         all_ids = np.arange(len(self._m), dtype=np.int64)
-        ok = self.evaluate(parent, all_ids)[0]
+        ok, _ = self.evaluate(parent, all_ids)
         members = np.zeros(len(all_ids), dtype=bool)
         members[list(parent.constraint_ids)] = True
         extra = np.flatnonzero(ok & ~members)
         if len(extra) == 0:
             return None
-        ids = tuple(parent.constraint_ids) + tuple(int(c) for c in extra)
+        child = self.solve(parent, tuple(parent.constraint_ids) + tuple(int(c) for c in extra), hypothesis_id=hypothesis_id, window=window, added=None)
+        if self._key(child) >= self._key(parent):
+            return child
+        satisfied = self.mahalanobis(parent, extra)[1] < self.plus.gate_chi2
+        if not satisfied.any() or satisfied.all():
+            return child
+        self.forget(hypothesis_id)
+        ids = tuple(parent.constraint_ids) + tuple(int(c) for c in extra[satisfied])
         return self.solve(parent, ids, hypothesis_id=hypothesis_id, window=window, added=None)
 
+    def _key(self, hypothesis: Hypothesis) -> float:
+        """:meth:`rank_key` of a hypothesis from a full evaluation (not from the table)."""
+        support = self.evaluate(hypothesis, np.arange(len(self._m), dtype=np.int64))[1]
+        return self.rank_key(hypothesis, 0, float(support.sum()))
+
+    def _make(self, ids: tuple[int, ...], warm: Hypothesis, hypothesis_id: int, parent_id: int | None, window: int, added: int | None) -> Hypothesis:
+        self.forget(hypothesis_id)
+        nodes, poses, chi2, odometry = self._solve_set(ids, warm)
+        self._chain_chi2[hypothesis_id] = odometry
+        return Hypothesis(hypothesis_id, parent_id, ids, window, nodes, poses, chi2=chi2, added_constraint_id=added)
+
     def solve(self, parent: Hypothesis, constraint_ids: tuple[int, ...], *, hypothesis_id: int, window: int, added: int | None) -> Hypothesis:
+        """Solve ``constraint_ids`` from the parent, then refine it to its consensus set: members
+        whose residual fails the gate leave, constraints whose innovation passes it join (the
+        drawn ``added`` stays), for at most ``closure_rounds`` rounds, each kept only if it
+        improves :meth:`rank_key` (a descent step on the truncated-least-squares cost)."""
         self._sync()
         ids = tuple(constraint_ids)
-        nodes, poses, chi2, odometry = self._solve_set(ids, parent)
-        hypothesis = Hypothesis(hypothesis_id, parent.id, ids, window, nodes, poses, chi2=chi2, added_constraint_id=added)
-        self._chain_chi2[hypothesis_id] = odometry
+        hypothesis = self._make(ids, parent, hypothesis_id, parent.id, window, added)
         all_ids = np.arange(len(self._m), dtype=np.int64)
+        ok, support = self.evaluate(hypothesis, all_ids)
+        key = self.rank_key(hypothesis, 0, float(support.sum()))
+        previous_odometry = self._chain_chi2[hypothesis_id]
         for _ in range(self.plus.closure_rounds):
-            ok = self.evaluate(hypothesis, all_ids)[0]
             members = np.zeros(len(all_ids), dtype=bool)
             members[list(ids)] = True
             keep = members & ok
-            if added is not None and not ok[added]:
+            if added is not None:
                 keep[added] = True  # the drawn constraint stays: this child tests it
             refined = tuple(int(c) for c in ids if keep[c]) + tuple(int(c) for c in np.flatnonzero(ok & ~members))
             if set(refined) == set(ids):
                 break
-            self.forget(hypothesis_id)
-            ids = refined
-            nodes, poses, chi2, odometry = self._solve_set(ids, hypothesis)
-            hypothesis = Hypothesis(hypothesis_id, parent.id, ids, window, nodes, poses, chi2=chi2, added_constraint_id=added)
-            self._chain_chi2[hypothesis_id] = odometry
+            candidate = self._make(refined, hypothesis, hypothesis_id, parent.id, window, added)
+            ok_c, support_c = self.evaluate(candidate, all_ids)
+            key_c = self.rank_key(candidate, 0, float(support_c.sum()))
+            if key_c <= key:  # no descent: keep the previous solution
+                self.forget(hypothesis_id)
+                self._chain_chi2[hypothesis_id] = previous_odometry
+                break
+            previous_odometry = self._chain_chi2[hypothesis_id]
+            hypothesis, ids, ok, key = candidate, refined, ok_c, key_c
         return hypothesis
 
     def _eligible_mask(self) -> np.ndarray:
