@@ -104,7 +104,9 @@ class VerifyRow:
 
     Counts and precision/recall/F1 are over the accepted loops; ``paper_*`` over the constraints
     consistent with the top hypothesis (paper sec. II-A); ``ate_rmse_m`` after SE(2) alignment.
-    ``window_time_*`` are the verifier's wall time per window step (``ilv``'s incremental work).
+    ``window_time_*`` are the verifier's wall time per window step (``ilv``'s incremental work);
+    ``cpu_time_s`` is the process CPU time of the run (steadier than wall time on a shared machine,
+    but it also counts GTSAM's worker threads, if any).
     """
 
     log: str
@@ -112,6 +114,7 @@ class VerifyRow:
     frames: int
     log_duration_s: float
     wall_time_s: float
+    cpu_time_s: float
     candidates: int
     constraints: int
     accepted: int
@@ -228,9 +231,10 @@ def verify_inputs(
             )
         verifier.set_true_pairs(inputs.candidates[i].pair for i in candidate_truth.true_ids)
 
-    started = time.perf_counter()
+    started, started_cpu = time.perf_counter(), time.process_time()
     result, steps, window_times = feed(verifier, inputs, on_step=on_step)
     wall = time.perf_counter() - started
+    cpu = time.process_time() - started_cpu
 
     truth = inputs.truth_of([c.candidate.pair for c in result.constraints], config.consistency_radius_m)
     metrics = evaluate(result, truth, ground_truth=inputs.ground_truth, steps=steps)
@@ -241,6 +245,7 @@ def verify_inputs(
         frames=inputs.frames,
         log_duration_s=inputs.duration_s,
         wall_time_s=wall,
+        cpu_time_s=cpu,
         candidates=len(inputs.candidates),
         constraints=len(result.constraints),
         accepted=acc.accepted,
