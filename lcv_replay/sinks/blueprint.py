@@ -14,7 +14,8 @@ Entity paths are named after what they hold, so that a user (or a test) finds th
                                 ``similarity``, ``state`` as instance data
 ``/constraints/pending``        constraints arrived since the last step (not judged yet)
 ``/hypotheses/trajectories``    the top-k hypotheses' trajectories, labelled by rank
-``/hypotheses/ranks``           scores of all kept hypotheses by rank (bar chart; rank 1 first)
+``/hypotheses/ranks``           the ranking key of every kept hypothesis in rank order (bar chart, rank 1
+                                first; the score for ``ilv``), with ``hypothesis_id`` and ``score``
 ``/hypotheses/consistency``     hypothesis × constraint consistency (tensor, rows by rank)
 ``/hypotheses/tree``            generation tree: nodes = hypotheses, edges parent → child
 ``/hypotheses/sequences``       the constraint sequence that built each top hypothesis (markdown)
@@ -119,7 +120,7 @@ def default_blueprint(*, has_images: bool, has_retrieval: bool):
         )
     )
     right = rrb.Vertical(
-        rrb.BarChartView(name="Hypothesis scores by rank", origin=HYPOTHESES_RANKS),
+        rrb.BarChartView(name="Hypotheses by rank (ranking key)", origin=HYPOTHESES_RANKS),
         rrb.TensorView(name="Consistency (hypothesis × constraint)", origin=HYPOTHESES_CONSISTENCY),
         rrb.Tabs(
             rrb.TimeSeriesView(

@@ -35,13 +35,15 @@ class ConstraintState(IntEnum):
 #: What needs attention is opaque (accepted, wrongly accepted, missed); the rest is faint, so that
 #: thousands of correctly rejected retrieval candidates do not hide the map.
 STATE_STYLE: dict[ConstraintState, tuple[str, tuple[int, int, int, int]]] = {
-    ConstraintState.PENDING: ("pending (not judged yet)", (220, 220, 220, 90)),
+    ConstraintState.PENDING: ("pending (not judged yet)", (220, 220, 220, 40)),
     ConstraintState.ACCEPTED: ("accepted", (40, 200, 80, 255)),
-    ConstraintState.REJECTED: ("rejected", (120, 120, 150, 70)),
+    ConstraintState.REJECTED: ("rejected", (120, 120, 150, 50)),
     ConstraintState.ACCEPTED_FALSE: ("accepted but truly false", (240, 30, 30, 255)),
     ConstraintState.REJECTED_TRUE: ("rejected but truly true (missed)", (250, 170, 30, 255)),
-    ConstraintState.REJECTED_FALSE: ("rejected, truly false", (170, 80, 110, 50)),
+    ConstraintState.REJECTED_FALSE: ("rejected, truly false", (170, 80, 110, 30)),
 }
+#: Line width of each state in UI points (index = state value): faint states thin, wrong ones thick.
+STATE_WIDTH_PT = (0.5, 1.0, 0.5, 2.5, 1.5, 0.5)
 
 
 def constraint_states(

@@ -37,6 +37,7 @@ from lcv_replay.sinks import blueprint as bp
 from lcv_replay.sinks.base import BaseSink, FrameUpdate, RetrievalUpdate, RunStart, RunSummary, StepUpdate
 from lcv_replay.sinks.layout import (
     STATE_STYLE,
+    STATE_WIDTH_PT,
     ConstraintState,
     GrowingRows,
     MapEstimate,
@@ -299,7 +300,7 @@ class RerunSink(BaseSink):
         rec.log(bp.REPORT, rr.TextDocument(self._report_markdown(None), media_type=rr.MediaType.MARKDOWN), static=True)
         # Styles of the column-logged entities, static (rows carry only the data).
         rec.log(bp.RETRIEVAL_LINES, rr.LineStrips2D.from_fields(radii=[_LINE], colors=[(60, 140, 250)], show_labels=False), static=True)
-        rec.log(bp.CONSTRAINTS_PENDING, rr.LineStrips2D.from_fields(radii=[_LINE], class_ids=[int(ConstraintState.PENDING)], show_labels=False), static=True)
+        rec.log(bp.CONSTRAINTS_PENDING, rr.LineStrips2D.from_fields(radii=[rr.Radius.ui_points(STATE_WIDTH_PT[ConstraintState.PENDING])], class_ids=[int(ConstraintState.PENDING)], show_labels=False), static=True)
         for name, color in (("precision", (40, 200, 80)), ("recall", (60, 140, 250)), ("ate_rmse_m", (240, 90, 40))):
             rec.log(bp.metric_path(name), rr.SeriesLines(colors=[color], names=[name]), static=True)
         if start.ground_truth is not None and len(start.ground_truth):
@@ -443,8 +444,8 @@ class RerunSink(BaseSink):
             drawn = states[order]
             pairs = np.array([(c.query_frame, c.match_frame) for c in picked], dtype=np.int64)
             positions = self._map.poses()[:, :2]
-            # Negative radii are UI points (rr.Radius.ui_points); wrong accepted loops drawn thicker.
-            radii = -np.where(drawn == ConstraintState.ACCEPTED_FALSE, 2.5, 1.0).astype(np.float32)
+            # Negative radii are UI points (rr.Radius.ui_points): faint states thin, wrong loops thick.
+            radii = -np.asarray(STATE_WIDTH_PT, dtype=np.float32)[drawn]
             rec.log(
                 bp.CONSTRAINTS_SEGMENTS,
                 rr.LineStrips2D(segments(positions, pairs), radii=radii, class_ids=drawn.astype(np.uint16), show_labels=False),

@@ -78,20 +78,34 @@ def test_recording_has_the_entities_of_a_g2o_replay(square):
     assert any(v for v in tree.column(column(tree, "GraphEdges:edges")).to_pylist() if v)
 
 
-def test_rank1_score_is_the_maximum_of_the_bar_chart(square):
-    ranks = square["tables"][bp.HYPOTHESES_RANKS]
+def _bars(ranks) -> list[tuple[list[float], list[int]]]:
+    """(bar heights, scores) of every logged ranking."""
     values = ranks.column(column(ranks, "BarChart:values")).to_pylist()
     scores = ranks.column(column(ranks, "score")).to_pylist()
-    checked = 0
+    out = []
     for bars, score in zip(values, scores):
-        if not bars:
-            continue
-        buffer = bars[0]["buffer"]
-        heights = next(v for v in buffer.values() if v is not None) if isinstance(buffer, dict) else buffer
-        assert heights[0] == max(heights)
-        assert score[0] == max(score)
-        checked += 1
-    assert checked >= 5
+        if bars:
+            buffer = bars[0]["buffer"]
+            heights = next(v for v in buffer.values() if v is not None) if isinstance(buffer, dict) else buffer
+            out.append((list(heights), list(score)))
+    return out
+
+
+def test_rank1_is_the_maximum_of_the_bar_chart(square):
+    rankings = _bars(square["tables"][bp.HYPOTHESES_RANKS])
+    assert len(rankings) >= 5
+    for heights, scores in rankings:
+        assert heights[0] == max(heights)  # rank 1 has the largest ranking key...
+        assert heights == sorted(heights, reverse=True)  # ... and the bars are in rank order
+        assert len(scores) == len(heights)
+
+
+def test_with_the_paper_method_the_bars_are_the_scores(square, tmp_path):
+    summary, rrd, _ = _run(square["log"], tmp_path, "ilv", square["config"], method="ilv")
+    rankings = _bars(read_rrd(rrd)[bp.HYPOTHESES_RANKS])
+    assert rankings and summary.method == "ilv"
+    for heights, scores in rankings:
+        assert heights == [float(s) for s in scores] and scores[0] == max(scores)
 
 
 def test_accepted_in_summary_are_those_coloured_accepted_at_the_last_frame(square):

@@ -27,7 +27,7 @@ from tests.replay.helpers import FAST_CONFIG_TOML, record_square_route, write_co
 
 EXPECTED_VIEWS = {
     "Map (rank-1 hypothesis)",
-    "Hypothesis scores by rank",
+    "Hypotheses by rank (ranking key)",
     "Consistency (hypothesis × constraint)",
     "Precision / recall",
     "Events",
