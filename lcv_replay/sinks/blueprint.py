@@ -12,7 +12,7 @@ Entity paths are named after what they hold, so that a user (or a test) finds th
 ``/constraints/segments``       every judged constraint as a segment on the rank-1 map, coloured by
                                 state, with ``constraint_id``, ``query_frame``, ``match_frame``,
                                 ``similarity``, ``state`` as instance data
-``/constraints/pending``        constraints arrived since the last step (not judged yet)
+``/constraints/pending``        constraints arrived since the last step (not judged yet; the newest 300)
 ``/hypotheses/trajectories``    the top-k hypotheses' trajectories, labelled by rank
 ``/hypotheses/ranks``           the ranking key of every kept hypothesis in rank order (bar chart, rank 1
                                 first; the score for ``ilv``), with ``hypothesis_id`` and ``score``

@@ -58,8 +58,9 @@ APPLICATION_ID = "lcv-replay"
 WALL_CLOCK_KEYS = ("wall_time_s", "x_real_time", "setup_time_s")
 TRAJECTORY_EVERY = 50  # frames between re-logs of the growing trajectories (5 s of a 10 Hz log)
 COLUMN_FLUSH_FRAMES = 50  # per-frame series are sent with send_columns every this many frames
-PENDING_FULL_LIMIT = 500  # re-log all pending constraints at each arrival while there are this few
+PENDING_FULL_LIMIT = 500  # re-log the pending constraints at each arrival while there are this few
 PENDING_EVERY = 10  # ... else every this many frames
+PENDING_MAX_DRAWN = 300  # the newest pending constraints drawn (all of them are judged at the step)
 CONSISTENCY_MAX_CELLS = 1_000_000  # rows of the consistency tensor are cut to fit (best first)
 TREE_MAX_NODES = 5_000  # the generation tree keeps the newest nodes beyond this
 JPEG_QUALITY = 85
@@ -366,7 +367,9 @@ class RerunSink(BaseSink):
         self._rec.log(path, rr.EncodedImage(contents=encoded.tobytes(), media_type="image/jpeg"))
 
     def _log_pending(self) -> None:
-        pending = self._constraint_rows.view[self._judged :]  # (P, 3): id, query, match
+        # (P, 3): id, query, match of the newest pending constraints (retrieval proposes ~N_r per
+        # frame: thousands per window would hide the map; the newest are the ones to watch).
+        pending = self._constraint_rows.view[max(self._judged, len(self._constraint_rows) - PENDING_MAX_DRAWN) :]
         self._last_pending_frame = self._frame
         if not len(pending):
             self._rec.log(bp.CONSTRAINTS_PENDING, rr.Clear(recursive=False))
