@@ -169,7 +169,8 @@ class PlusModel:
         self._r = np.zeros((0, 3, 3))  # measurement covariances
         self._cond: dict[int, _Conditioning] = {}
         self._chain_chi2: dict[int, float] = {0: 0.0}  # odometry chi-square of each hypothesis' solution
-        self._walk: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # per hypothesis: (poses, prefix sums)
+        self._walk: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # per hypothesis: node adjoints, node prefix sums
+        self._evaluated: dict[int, tuple[Hypothesis, np.ndarray, np.ndarray]] = {}  # last whole-history evaluation
 
     # ------------------------------------------------------------------ constraints
     def _sync(self) -> None:
@@ -369,6 +370,17 @@ class PlusModel:
         return mahalanobis_d2(r, cov), mahalanobis_d2(r, self._r[ids])
 
     def evaluate(self, hypothesis: Hypothesis, constraint_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ids = np.asarray(constraint_ids, dtype=np.int64)
+        whole = len(ids) == len(self._m) and (len(ids) == 0 or (ids[0] == 0 and ids[-1] == len(ids) - 1))
+        cached = self._evaluated.get(hypothesis.id)
+        if whole and cached is not None and cached[0] is hypothesis and len(cached[1]) == len(ids):
+            return cached[1], cached[2]
+        ok, support = self._evaluate(hypothesis, ids)
+        if whole:
+            self._evaluated[hypothesis.id] = (hypothesis, ok, support)
+        return ok, support
+
+    def _evaluate(self, hypothesis: Hypothesis, constraint_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Consistent: a constraint outside the hypothesis passes the chi-square test of its
         innovation, ``d² < gate_chi2``; a member passes it on its residual at the solution,
         ``rᵀR⁻¹r < gate_chi2`` (members were admitted, and pruned, by their innovation and
@@ -414,6 +426,7 @@ class PlusModel:
 
     def forget(self, hypothesis_id: int) -> None:
         self._cond.pop(hypothesis_id, None)
+        self._evaluated.pop(hypothesis_id, None)
         self._walk.pop(hypothesis_id, None)
         if hypothesis_id != 0:
             self._chain_chi2.pop(hypothesis_id, None)
