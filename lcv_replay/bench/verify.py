@@ -18,7 +18,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from lcv_replay.errors import LogFormatError
+from lcv_replay.errors import LogFormatError, VerificationError
 from lcv_replay.evaluation.metrics import Metrics, evaluate
 from lcv_replay.evaluation.truth import LoopTruth, loop_truth
 from lcv_replay.records import LoopCandidate, Pose2D
@@ -222,8 +222,6 @@ def verify_inputs(
     if needs_truth(verifier):
         candidate_truth = inputs.truth_of([c.pair for c in inputs.candidates], config.consistency_radius_m)
         if not candidate_truth.known:
-            from lcv_replay.errors import VerificationError
-
             raise VerificationError(
                 f"method '{method}' needs the log's true loops, but the log has neither labels nor ground truth",
                 path=inputs.path,

@@ -41,6 +41,16 @@ def no_candidates(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.fixture(scope="module")
+def no_truth(tmp_path_factory) -> Path:
+    from recorders.g2o import G2oOptions, record_g2o
+
+    out = tmp_path_factory.mktemp("bench") / "no_truth.mcap"
+    graph = shared_path("robustslam_kitti", "06", "kitti_06_alpha_0.50.g2o")
+    record_g2o(graph, out, G2oOptions(auto_siblings=False))  # neither labels nor ground truth
+    return out
+
+
 def _toml(tmp_path: Path, text: str, name: str = "mini.toml") -> Path:
     path = tmp_path / name
     path.write_text(text, encoding="utf-8")
@@ -59,6 +69,19 @@ def test_run_verification_row_has_the_keys_and_nulls_where_undefined(kitti06):
     assert row["recall"] == 0.0 and row["false_negatives"] == 45
     assert row["ate_rmse_m"] > 3.0  # odometry only (measured 3.56 m)
     json.dumps(row)
+
+
+def test_a_log_without_truth_gives_nulls_and_the_oracle_refuses_it(no_truth):
+    from lcv_replay.bench.verify import verify_inputs
+    from lcv_replay.errors import VerificationError
+
+    inputs = load_inputs(no_truth)
+    row = verify_inputs(inputs, "dcs", FAST).row.as_dict()
+    assert row["truth_source"] == "none" and row["accepted"] > 0
+    for key in ("true_positives", "false_positives", "false_negatives", "precision", "recall", "f1", "ate_rmse_m"):
+        assert row[key] is None, key
+    with pytest.raises(VerificationError, match="needs the log's true loops"):
+        verify_inputs(inputs, "oracle", FAST)
 
 
 def test_cli_bench_verify_writes_json_rows(kitti06, tmp_path):
