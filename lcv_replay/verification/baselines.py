@@ -443,22 +443,16 @@ for _count in IR_ONLY_COUNTS:
     _register_ir_only_variant(_count)
 
 
-@register("dcs", help="dynamic covariance scaling on every loop factor (Φ = baselines.dcs_phi), accept chi2 < 7.81")
-def _make_dcs(config: VerificationConfig, *, odometry_information=None) -> RobustKernelVerifier:
-    kernel = pose_graph.RobustKernel("dcs", config.baselines.dcs_phi)
-    return RobustKernelVerifier(config, odometry_information=odometry_information, kernel=kernel)
+def _register_kernel(kind: str, scale_key: str, help: str) -> None:
+    @register(kind, help=f"{help} (scale = baselines.{scale_key}), accept chi2 < baselines.accept_chi2")
+    def _make(config: VerificationConfig, *, odometry_information=None) -> RobustKernelVerifier:
+        kernel = pose_graph.RobustKernel(kind, getattr(config.baselines, scale_key))  # type: ignore[arg-type]
+        return RobustKernelVerifier(config, odometry_information=odometry_information, kernel=kernel)
 
 
-@register("gm", help="Geman-McClure on every loop factor (c = baselines.gm_c), accept chi2 < 7.81")
-def _make_gm(config: VerificationConfig, *, odometry_information=None) -> RobustKernelVerifier:
-    kernel = pose_graph.RobustKernel("gm", config.baselines.gm_c)
-    return RobustKernelVerifier(config, odometry_information=odometry_information, kernel=kernel)
-
-
-@register("cauchy", help="Cauchy kernel on every loop factor (c = baselines.cauchy_c), accept chi2 < 7.81")
-def _make_cauchy(config: VerificationConfig, *, odometry_information=None) -> RobustKernelVerifier:
-    kernel = pose_graph.RobustKernel("cauchy", config.baselines.cauchy_c)
-    return RobustKernelVerifier(config, odometry_information=odometry_information, kernel=kernel)
+_register_kernel("dcs", "dcs_phi", "dynamic covariance scaling on every loop factor")
+_register_kernel("gm", "gm_c", "Geman-McClure on every loop factor")
+_register_kernel("cauchy", "cauchy_c", "Cauchy kernel on every loop factor")
 
 
 @register("gnc", help="GNC-TLS (GncLMOptimizer, weightsTol 1e-9), odometry known inliers, accept weight > 0.5")

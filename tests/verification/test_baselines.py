@@ -183,3 +183,11 @@ def test_robust_baselines_reach_full_precision_on_kitti06(kitti06, method):
     assert row.precision == 1.0
     assert row.recall >= 0.95  # measured: 1.00 for both
     assert row.ate_rmse_m < 2.5  # measured 2.19 m (odometry alone: 3.56 m)
+
+
+def test_robust_kernels_take_their_scale_from_the_config():
+    from lcv_replay.verification.pose_graph import RobustKernel
+
+    config = VerificationConfig(baselines=BaselineConfig(dcs_phi=50.0, gm_c=3.0, cauchy_c=0.5))
+    kernels = {m: make_verifier(m, config, odometry_information=ODOM_INFORMATION).kernel for m in ("dcs", "gm", "cauchy")}
+    assert kernels == {"dcs": RobustKernel("dcs", 50.0), "gm": RobustKernel("gm", 3.0), "cauchy": RobustKernel("cauchy", 0.5)}
