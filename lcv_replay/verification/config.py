@@ -44,6 +44,7 @@ class IlvPlusConfig:
     """
 
     gate_chi2: float = 11.34  # chi-square gate (3 dof, 0.99; GTSAM GNC-TLS default inlier threshold)
+    explore_chi2: float = 113.4  # sequential selection never draws a constraint with innovation beyond 10 x gate
     min_loop_gap_frames: int = 0  # drop candidates closer in time (retrieval already excludes Δt, sec. II-B)
     closure_rounds: int = 2  # consensus refinement rounds per drawn hypothesis (0 = the paper's child)
     covariance_loops: int = 24  # loops of a hypothesis (evenly spread in time) conditioning the innovation covariance (cost bound)
@@ -55,6 +56,7 @@ class IlvPlusConfig:
         from lcv_replay.config import require
 
         require(self.gate_chi2 > 0, "verification.ilv_plus.gate_chi2", self.gate_chi2, "a number > 0")
+        require(self.explore_chi2 >= self.gate_chi2, "verification.ilv_plus.explore_chi2", self.explore_chi2, "a number >= gate_chi2")
         require(self.min_loop_gap_frames >= 0, "verification.ilv_plus.min_loop_gap_frames", self.min_loop_gap_frames, "an integer >= 0")
         require(self.closure_rounds >= 0, "verification.ilv_plus.closure_rounds", self.closure_rounds, "an integer >= 0")
         require(self.covariance_loops >= 1, "verification.ilv_plus.covariance_loops", self.covariance_loops, "an integer >= 1")

@@ -147,12 +147,14 @@ class _Conditioning:
     """A hypothesis' loops as a Gaussian-process update of the odometry random walk.
 
     ``m``, ``q`` are the frames of the loops used (at most ``covariance_loops``, evenly spread in
-    time) and ``k_inv`` is ``(A P_LL Aᵀ + R_L)⁻¹`` (``3n × 3n``, in the loops' local coordinates).
+    time) and ``weight`` is ``Aᵀ (A P_LL Aᵀ + R_L)⁻¹ A`` (``3n × 3n``): the inverse is taken in the
+    loops' local coordinates (``A = Ad(X_q)⁻¹`` per loop), where ``R_L`` lives; the update
+    ``P_cL · weight · P_Lc`` is then applied to world-frame covariances.
     """
 
     m: np.ndarray
     q: np.ndarray
-    k_inv: np.ndarray
+    weight: np.ndarray
 
 
 class PlusModel:
@@ -328,10 +330,13 @@ class PlusModel:
             k = p.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)
             for j, c in enumerate(ids):
                 k[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += self._r[c]
-            k_inv = _spd_inverse(k)
+            blocks = np.zeros((3 * n, 3 * n))
+            for j in range(n):
+                blocks[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = a[j]
+            weight = blocks.T @ _spd_inverse(k) @ blocks  # Aᵀ K⁻¹ A: the update in world coordinates
         else:
-            k_inv = np.zeros((0, 0))
-        cond = _Conditioning(m, q, k_inv)
+            weight = np.zeros((0, 0))
+        cond = _Conditioning(m, q, weight)
         self._cond[hypothesis.id] = cond
         return cond
 
@@ -361,11 +366,10 @@ class PlusModel:
         prior = a_c @ pose_graph.pair_covariance(prefix, m, q, m, q) @ np.swapaxes(a_c, -1, -2)
         n = len(cond.m)
         if n:
-            a_l = pose_graph.se2_adjoint_inverse(hypothesis.poses_at(self.chain, cond.q))
             p_cl = pose_graph.pair_covariance(prefix, m[:, None], q[:, None], cond.m[None, :], cond.q[None, :])  # (K, n, 3, 3)
-            p_cl = a_c[:, None] @ p_cl @ np.swapaxes(a_l, -1, -2)[None, :]
             p_cl = p_cl.transpose(0, 2, 1, 3).reshape(len(ids), 3, 3 * n)
-            prior = prior - (p_cl @ cond.k_inv) @ np.swapaxes(p_cl, -1, -2)
+            correction = np.einsum("kai,ij,kbj->kab", p_cl, cond.weight, p_cl, optimize=True)
+            prior = prior - a_c @ correction @ np.swapaxes(a_c, -1, -2)
         cov = self._r[ids] + 0.5 * (prior + np.swapaxes(prior, -1, -2))
         return mahalanobis_d2(r, cov), mahalanobis_d2(r, self._r[ids])
 
@@ -400,12 +404,14 @@ class PlusModel:
     def draw_weights(self, parent: Hypothesis, candidates: np.ndarray) -> np.ndarray:
         """Sequential selection draws among the constraints inconsistent with the parent; ``ilv+``
         prefers the nearly consistent ones, ``w = exp(-(d² - gate) / (2 gate))``, floored at
-        ``1e-3`` so that any inconsistent constraint can still be tried. A true loop that only a
-        joint correction can satisfy (its innovation just above the gate) is then tried long
-        before the hundreds of far-off false candidates."""
+        ``1e-3``, and never tries one beyond ``explore_chi2`` (a child built on it would have to
+        bend the parent far beyond its uncertainty). A true loop that only a joint correction can
+        satisfy (its innovation just above the gate) is then tried long before the hundreds of
+        far-off false candidates, and a window with nothing plausible to try costs nothing."""
         d2 = self.mahalanobis(parent, candidates)[0]
         gate = self.plus.gate_chi2
-        return np.maximum(np.exp(-np.maximum(d2 - gate, 0.0) / (2.0 * gate)), 1e-3)
+        weights = np.maximum(np.exp(-np.maximum(d2 - gate, 0.0) / (2.0 * gate)), 1e-3)
+        return np.where(d2 < self.plus.explore_chi2, weights, 0.0)
 
     def accepted(self, top: Hypothesis, consistent: np.ndarray) -> np.ndarray:
         """The rank-1 hypothesis' own constraints whose residual at its solution passes the gate

@@ -92,8 +92,8 @@ class HypothesisModel(Protocol):
         evidence for the same world), or ``None`` (``ilv``: the paper has no such step)."""
 
     def draw_weights(self, parent: Hypothesis, candidates: np.ndarray) -> np.ndarray | None:
-        """Weights of the constraints a child of ``parent`` may be drawn with, or ``None`` for a
-        uniform draw (``ilv``, the paper)."""
+        """Weights (``>= 0``; 0 = never) of the constraints a child of ``parent`` may be drawn
+        with, or ``None`` for a uniform draw (``ilv``, the paper)."""
 
     def accepted(self, top: Hypothesis, consistent: np.ndarray) -> np.ndarray:
         """``(C,)`` bool: the accepted loop closures given the rank-1 hypothesis and its row
@@ -150,6 +150,7 @@ class IncrementalVerifier:
         self._next_id = 0
         self._window = 0
         self._stepped_frames = 0
+        self._pending: list[tuple[float, float, float]] = []  # odometry not yet appended to the chain
         self._last_step: VerifierStep | None = None
         self._result: VerificationResult | None = None
 
@@ -157,23 +158,34 @@ class IncrementalVerifier:
     def add_frame(self, frame_index: int, odom: Pose2D) -> None:
         if self._result is not None:
             raise VerificationError(f"{self.name}: add_frame after result()", fix="build a new verifier")
-        if frame_index != len(self.chain):
+        if frame_index != self.num_frames:
             raise VerificationError(
-                f"{self.name}: frame {frame_index} added, expected frame {len(self.chain)}",
+                f"{self.name}: frame {frame_index} added, expected frame {self.num_frames}",
                 fix="feed frames in order, each exactly once",
             )
-        values = np.array([[float(odom[0]), float(odom[1]), float(odom[2])]])
-        if not np.all(np.isfinite(values)):
-            raise VerificationError(f"{self.name}: frame {frame_index} has non-finite odometry {values[0].tolist()}")
-        self.chain.extend(values)
+        values = (float(odom[0]), float(odom[1]), float(odom[2]))
+        if not all(np.isfinite(values)):
+            raise VerificationError(f"{self.name}: frame {frame_index} has non-finite odometry {list(values)}")
+        self._pending.append(values)
 
     def add_candidates(self, candidates: Sequence[LoopCandidate]) -> list[Constraint]:
         if self._result is not None:
             raise VerificationError(f"{self.name}: add_candidates after result()", fix="build a new verifier")
-        return self.history.admit(candidates, len(self.chain))
+        return self.history.admit(candidates, self.num_frames)
+
+    @property
+    def num_frames(self) -> int:
+        """Frames added so far."""
+        return len(self.chain) + len(self._pending)
+
+    def _flush(self) -> None:
+        """Append the buffered odometry to the chain (done once per window, not per frame)."""
+        if self._pending:
+            self.chain.extend(np.asarray(self._pending, dtype=np.float64))
+            self._pending.clear()
 
     def step(self) -> VerifierStep | None:
-        n = len(self.chain)
+        n = self.num_frames
         if n == 0 or n % self.config.window_frames != 0 or n == self._stepped_frames:
             return None
         return self._window_end()
@@ -181,8 +193,9 @@ class IncrementalVerifier:
     def result(self) -> VerificationResult:
         if self._result is not None:
             return self._result
-        if len(self.chain) == 0:
+        if self.num_frames == 0:
             raise VerificationError(f"{self.name}: no frames were added", fix="feed at least one frame")
+        self._flush()
         if len(self.chain) != self._stepped_frames or len(self.history) != self.table.num_constraints:
             self._window_end()
         step = self._last_step
@@ -213,6 +226,7 @@ class IncrementalVerifier:
     def _window_end(self) -> VerifierStep:
         start = time.perf_counter()
         timings = {"columns": 0.0, "optimise": 0.0, "rows": 0.0, "prune": 0.0}
+        self._flush()
         n = len(self.chain)
         constraints = self.history.constraints
         first_new = self.table.num_constraints
@@ -249,7 +263,10 @@ class IncrementalVerifier:
                 eligible = self._eligible.copy()
                 eligible[list(tried)] = False  # the same draw from the same parent gives the same child
                 choices = selectable_constraints(parent, self.table.row(parent_id), eligible=eligible, existing_sets=self._sets)
-                added = draw_constraint(self.rng, choices, self.model.draw_weights(parent, choices) if len(choices) else None)
+                weights = self.model.draw_weights(parent, choices) if len(choices) else None
+                if weights is not None:
+                    choices, weights = choices[weights > 0], weights[weights > 0]
+                added = draw_constraint(self.rng, choices, weights)
                 if added is None:
                     continue
                 tried.add(added)

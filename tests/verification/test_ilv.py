@@ -94,6 +94,7 @@ def test_innovation_covariance_matches_gtsam_marginals():
     for k, pose in enumerate(world.odom):
         verifier.add_frame(k, Pose2D(*pose))
         verifier.add_candidates([c for c in loops if c.query_frame == k])
+    verifier._flush()  # the verifier appends buffered odometry to its chain at window ends
     model = verifier.model
     model.plus = dataclasses.replace(model.plus, closure_rounds=0)  # keep the member sets as given
     root = Hypothesis(0, None, (), 0, np.zeros(1, dtype=np.int64), world.odom[:1].copy())
@@ -147,3 +148,20 @@ def test_robustslam_kitti_06_alpha_050():
     from lcv_replay.evaluation.metrics import absolute_trajectory_error
 
     assert absolute_trajectory_error(result.trajectory, ground_truth).rmse_m < 2.45
+
+
+def test_ilv_plus_draws_prefer_plausible_constraints(near_false_world):
+    world = dataclasses.replace(near_false_world, false_candidates=circle_world(num_false=12).false_candidates)
+    verifier = make_verifier("ilv+", SMALL, odometry_information=ODOM_INFORMATION)
+    feed(verifier, world)
+    verifier.result()
+    model = verifier.model
+    ids = np.arange(len(verifier.history), dtype=np.int64)
+    root = verifier.hypotheses[0]
+    d2 = model.mahalanobis(root, ids)[0]
+    weights = model.draw_weights(root, ids)
+    plus = model.plus
+    assert np.all((weights > 0) == (d2 < plus.explore_chi2))
+    assert (weights == 0).any() and (weights > 0).any()
+    order = np.argsort(d2)
+    assert np.all(np.diff(weights[order]) <= 1e-12)  # never prefers a less plausible constraint

@@ -94,7 +94,8 @@ def test_selection_draws_only_inconsistent_constraints(run):
             checked += 1
         if child in verifier.hypotheses:
             assert added in verifier.hypotheses[child].constraint_set or verifier.name == "ilv+"
-    assert checked > 0
+    # ilv draws uniformly, so its non-root parents get children; ilv+ only tries plausible ones
+    assert checked > 0 or verifier.name == "ilv+"
 
 
 def test_ranking_pruning_and_acceptance(run):
