@@ -75,7 +75,7 @@ def bench_verify_command(
 def bench_suite_command(
     quick: bool = typer.Option(False, "--quick", help="The CI subset (suite 'quick')."),
     suite: Optional[str] = typer.Option(None, "--suite", help="Built-in suite name (standard, quick) or a suite TOML file."),
-    method: list[str] = typer.Option([], "--method", "-m", help=_METHOD_HELP + " Default: the suite's, else every registered one."),
+    method: list[str] = typer.Option([], "--method", "-m", help=_METHOD_HELP + " Default: the suite's, else none, ir-only, dcs, gm, cauchy, gnc, oracle, ilv, ilv+."),
     config: Optional[Path] = typer.Option(None, "--config", help="TOML config; its [verification] section is used."),
     seed: Optional[int] = typer.Option(None, "--seed", help="Override verification.seed."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the report (rows, summary, config) as JSON."),
