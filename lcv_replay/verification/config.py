@@ -39,15 +39,15 @@ class IlvPlusConfig:
     """Parameters of ``ilv+`` (lcv_replay.verification.ilv), the improved verifier; not in the paper.
 
     ``ilv+`` keeps the paper's incremental multi-hypothesis structure and replaces its 10 m test by
-    a Mahalanobis test under the uncertainty of each hypothesis' pose graph, drops constraints too
-    short in time to be loop closures, and refines each drawn hypothesis to its consensus set.
+    a Mahalanobis test under the uncertainty of each hypothesis' pose graph (GTSAM marginals),
+    ranks by the truncated-least-squares cost, and refines each drawn hypothesis to its consensus
+    set (innovation tests to join, leave-one-out tests to leave).
     """
 
     gate_chi2: float = 11.34  # chi-square gate (3 dof, 0.99; GTSAM GNC-TLS default inlier threshold)
-    explore_chi2: float = 113.4  # sequential selection never draws a constraint with innovation beyond 10 x gate
+    explore_chi2: float = 113.4  # sequential selection never draws a constraint with innovation beyond 10 x gate (a cheap bound screens those out)
     min_loop_gap_frames: int = 0  # drop candidates closer in time (retrieval already excludes Δt, sec. II-B)
     closure_rounds: int = 2  # consensus refinement rounds per drawn hypothesis (0 = the paper's child)
-    covariance_loops: int = 24  # loops of a hypothesis (evenly spread in time) conditioning the innovation covariance (cost bound)
     iterations_per_window: int = 3  # sec. II-D uses 10 x 10; consensus refinement needs far fewer children
     hypotheses_per_iteration: int = 5
     max_hypotheses: int = 50  # kept hypotheses (the paper's bound is 200); each costs a column test per window
@@ -59,7 +59,6 @@ class IlvPlusConfig:
         require(self.explore_chi2 >= self.gate_chi2, "verification.ilv_plus.explore_chi2", self.explore_chi2, "a number >= gate_chi2")
         require(self.min_loop_gap_frames >= 0, "verification.ilv_plus.min_loop_gap_frames", self.min_loop_gap_frames, "an integer >= 0")
         require(self.closure_rounds >= 0, "verification.ilv_plus.closure_rounds", self.closure_rounds, "an integer >= 0")
-        require(self.covariance_loops >= 1, "verification.ilv_plus.covariance_loops", self.covariance_loops, "an integer >= 1")
         require(self.iterations_per_window >= 1, "verification.ilv_plus.iterations_per_window", self.iterations_per_window, "an integer >= 1")
         require(self.hypotheses_per_iteration >= 1, "verification.ilv_plus.hypotheses_per_iteration", self.hypotheses_per_iteration, "an integer >= 1")
         require(self.max_hypotheses >= self.hypotheses_per_iteration, "verification.ilv_plus.max_hypotheses", self.max_hypotheses, "an integer >= hypotheses_per_iteration")

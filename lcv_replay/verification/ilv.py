@@ -17,22 +17,26 @@ windows, pruning) and changes what the paper leaves weak:
 
 1. **Mahalanobis consistency under the hypothesis' own uncertainty** instead of a fixed 10 m radius,
    so loops between places that really are near each other are judged by their measurement, not
-   by a radius. The odometry is a random walk whose covariances come from prefix sums
-   (:class:`~.pose_graph.OdometryChain`), linearised along the hypothesis; the hypothesis' loops
-   condition it (a Gaussian-process update), so the test is tight where the hypothesis has closed
-   loops and loose after a long open traverse. A constraint outside the hypothesis is consistent
-   when its innovation passes the chi-square gate, ``rᵀ (R + Σ_pred)⁻¹ r < gate_chi2`` (3 dof,
-   0.99); a constraint inside it when its residual at the solution does, ``rᵀ R⁻¹ r < gate_chi2``.
+   by a radius. The covariance of a loop's predicted relative pose is the Laplace covariance of
+   the hypothesis' own pose graph at its solution (GTSAM's marginals), so the test is tight where
+   the hypothesis has closed loops and loose after a long open traverse. A constraint outside the
+   hypothesis is plausible when its innovation passes the chi-square gate,
+   ``rᵀ (R + Σ_pred)⁻¹ r < gate_chi2`` (3 dof, 0.99). The consistency table itself holds the
+   cheaper question "does the hypothesis' solution satisfy it", ``rᵀ R⁻¹ r < gate_chi2``.
 2. **Ranking by the truncated-least-squares cost** ``J = χ²_odometry + Σ_c min(χ²_c, gate)`` of the
    hypothesis' solution over the whole history (the objective GNC-TLS minimises), instead of the
    count of consistent constraints. Bending the odometry to satisfy a false loop, or a group of
    mutually consistent false loops, costs its odometry chi-square and the true loops it breaks; a
    hypothesis that merely fails to exclude constraints earns nothing for them.
-3. **Consensus refinement**: every child is solved, then its members whose residual fails the gate
-   are removed and the constraints outside it that pass are added, and it is solved again
-   (``closure_rounds``); the drawn constraint stays, since the child tests it. At every window
-   end the top hypotheses also **absorb** the new constraints consistent with them (a child edge
-   with constraint id ``ABSORBED``), which is how a hypothesis follows new evidence for its world.
+3. **Consensus refinement**: every child is solved, then the constraints outside it that its
+   solution satisfies join, and members leave whose residual fails the gate or whose
+   **leave-one-out** statistic does (removing the loop would lower the graph's chi-square by more
+   than the truncated cost of leaving it out: a false loop that bends a weakly held part of the
+   graph, such as the open end of the trajectory, fits its own solution well and only this test
+   sees it); it is solved again (``closure_rounds``); the drawn constraint stays, since the child
+   tests it. At every window end the top hypotheses also **absorb** the constraints whose
+   innovation passes the gate under them (a child edge with constraint id ``ABSORBED``), which is
+   how a hypothesis follows new evidence for its world.
 4. **A reduced pose graph**: nodes are frame 0 and the hypothesis' loop endpoints only, the odometry
    between them composed exactly with its covariance (first order); the other frames are the
    Brownian-bridge interpolation. The cost of a hypothesis depends on its loops, not on the log
@@ -142,21 +146,6 @@ class PaperModel:
 # ----------------------------------------------------------------------------------------------
 
 
-@dataclasses.dataclass(frozen=True)
-class _Conditioning:
-    """A hypothesis' loops as a Gaussian-process update of the odometry random walk.
-
-    ``m``, ``q`` are the frames of the loops used (at most ``covariance_loops``, evenly spread in
-    time) and ``weight`` is ``Aᵀ (A P_LL Aᵀ + R_L)⁻¹ A`` (``3n × 3n``): the inverse is taken in the
-    loops' local coordinates (``A = Ad(X_q)⁻¹`` per loop), where ``R_L`` lives; the update
-    ``P_cL · weight · P_Lc`` is then applied to world-frame covariances.
-    """
-
-    m: np.ndarray
-    q: np.ndarray
-    weight: np.ndarray
-
-
 class PlusModel:
     """``ilv+`` (see the module docstring)."""
 
@@ -169,9 +158,8 @@ class PlusModel:
         self._q = np.zeros(0, dtype=np.int64)
         self._z = np.zeros((0, 3))
         self._r = np.zeros((0, 3, 3))  # measurement covariances
-        self._cond: dict[int, _Conditioning] = {}
+        self._d2: dict[int, dict[int, float]] = {}  # per hypothesis: innovation d² of the constraints tested
         self._chain_chi2: dict[int, float] = {0: 0.0}  # odometry chi-square of each hypothesis' solution
-        self._walk: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # per hypothesis: node adjoints, node prefix sums
         self._evaluated: dict[int, tuple[Hypothesis, np.ndarray, np.ndarray]] = {}  # last whole-history evaluation
 
     # ------------------------------------------------------------------ constraints
@@ -211,22 +199,27 @@ class PlusModel:
         return nodes, solution.poses, solution.chi2, odometry
 
     def absorb(self, parent: Hypothesis, *, hypothesis_id: int, window: int) -> Hypothesis | None:
-        """The parent plus every constraint consistent with it, refined (new evidence).
+        """The parent plus every eligible constraint whose innovation passes the gate under the
+        parent's covariance (:meth:`mahalanobis`), refined (new evidence for the same world).
 
-        If that child ranks below its parent (the looser tests let in loops that bend it), the
-        child absorbs only the constraints the parent's solution already satisfies."""
+        If that child ranks below its parent (individually plausible constraints that are not
+        jointly so, after a long open traverse), the child absorbs only the constraints the
+        parent's solution already satisfies."""
         self._sync()
-        all_ids = np.arange(len(self._m), dtype=np.int64)
-        ok, _ = self.evaluate(parent, all_ids)
-        members = np.zeros(len(all_ids), dtype=bool)
-        members[list(parent.constraint_ids)] = True
-        extra = np.flatnonzero(ok & ~members)
+        outside = self._eligible_mask().copy()
+        outside[list(parent.constraint_ids)] = False
+        candidates = np.flatnonzero(outside)
+        if len(candidates) == 0:
+            return None
+        d2, chi2 = self.mahalanobis(parent, candidates)
+        passing = d2 < self.plus.gate_chi2
+        extra = candidates[passing]
         if len(extra) == 0:
             return None
         child = self.solve(parent, tuple(parent.constraint_ids) + tuple(int(c) for c in extra), hypothesis_id=hypothesis_id, window=window, added=None)
         if self._key(child) >= self._key(parent):
             return child
-        satisfied = self.mahalanobis(parent, extra)[1] < self.plus.gate_chi2
+        satisfied = chi2[passing] < self.plus.gate_chi2
         if not satisfied.any() or satisfied.all():
             return child
         self.forget(hypothesis_id)
@@ -245,10 +238,18 @@ class PlusModel:
         return Hypothesis(hypothesis_id, parent_id, ids, window, nodes, poses, chi2=chi2, added_constraint_id=added)
 
     def solve(self, parent: Hypothesis, constraint_ids: tuple[int, ...], *, hypothesis_id: int, window: int, added: int | None) -> Hypothesis:
-        """Solve ``constraint_ids`` from the parent, then refine it to its consensus set: members
-        whose residual fails the gate leave, constraints whose innovation passes it join (the
-        drawn ``added`` stays), for at most ``closure_rounds`` rounds, each kept only if it
-        improves :meth:`rank_key` (a descent step on the truncated-least-squares cost)."""
+        """Solve ``constraint_ids`` from the parent, then refine it to its consensus set, for at
+        most ``closure_rounds`` rounds, each kept only if it improves :meth:`rank_key` (a descent
+        step on the truncated-least-squares cost):
+
+        * constraints outside it that its solution satisfies (``rᵀR⁻¹r < gate``) join;
+        * members leave whose residual fails the gate, or whose leave-one-out test fails it
+          (:meth:`leave_one_out`: removing the loop would lower the graph's chi-square by more than
+          the gate, the truncated cost of leaving it out). The test is run on the members new
+          since the parent and on those with a residual above a third of the gate (a loop that
+          bends a weakly held part of the graph, such as the open end of the trajectory, fits its
+          own solution well and only this test sees it). The drawn ``added`` stays: this child
+          tests it."""
         self._sync()
         ids = tuple(constraint_ids)
         hypothesis = self._make(ids, parent, hypothesis_id, parent.id, window, added)
@@ -256,12 +257,18 @@ class PlusModel:
         ok, support = self.evaluate(hypothesis, all_ids)
         key = self.rank_key(hypothesis, 0, float(support.sum()))
         previous_odometry = self._chain_chi2[hypothesis_id]
+        gate = self.plus.gate_chi2
         for _ in range(self.plus.closure_rounds):
             members = np.zeros(len(all_ids), dtype=bool)
             members[list(ids)] = True
             keep = members & ok
+            suspect = np.flatnonzero(keep & ((support < 2.0 * gate / 3.0) | ~np.isin(all_ids, parent.constraint_ids)))
             if added is not None:
-                keep[added] = True  # the drawn constraint stays: this child tests it
+                suspect = suspect[suspect != added]
+            if len(suspect):
+                keep[suspect[self.leave_one_out(hypothesis, suspect) > gate]] = False
+            if added is not None:
+                keep[added] = True
             refined = tuple(int(c) for c in ids if keep[c]) + tuple(int(c) for c in np.flatnonzero(ok & ~members))
             if set(refined) == set(ids):
                 break
@@ -273,105 +280,81 @@ class PlusModel:
                 self._chain_chi2[hypothesis_id] = previous_odometry
                 break
             previous_odometry = self._chain_chi2[hypothesis_id]
-            hypothesis, ids, ok, key = candidate, refined, ok_c, key_c
+            hypothesis, ids, ok, support, key = candidate, refined, ok_c, support_c, key_c
         return hypothesis
 
     def _eligible_mask(self) -> np.ndarray:
         return (self._q - self._m) >= self.plus.min_loop_gap_frames
 
     # ------------------------------------------------------------------ uncertainty
-    def _random_walk(self, hypothesis: Hypothesis, frames: np.ndarray) -> np.ndarray:
-        """The odometry random walk linearised along the hypothesis' trajectory: an ``(N, 3, 3)``
-        prefix-sum array valid at ``frames`` (see :func:`~.pose_graph.random_walk_prefix`).
-
-        Within a segment between two nodes ``a < k <= b`` the hypothesis is taken as the odometry
-        moved rigidly by its correction at ``a``, ``G_a = X_a O_a⁻¹``, so
-        ``S_h[k] = S_h[a] + Ad(G_a) (S[k] - S[a]) Ad(G_a)ᵀ``: exact after the last node (extension by
-        odometry), first order inside segments, and O(nodes + frames) instead of O(N).
-        """
-        nodes = hypothesis.node_frames
-        cached = self._walk.get(hypothesis.id)
-        if cached is None:
-            odom_prefix = self.chain.prefix
-            correction = pose_graph.se2_compose(hypothesis.node_poses, _inverse(self.chain.poses[nodes]))
-            ad = pose_graph.se2_adjoint(correction)
-            steps = odom_prefix[nodes[1:]] - odom_prefix[nodes[:-1]]
-            increments = ad[:-1] @ steps @ np.swapaxes(ad[:-1], -1, -2)
-            node_prefix = np.concatenate([np.zeros((1, 3, 3)), np.cumsum(increments, axis=0)])
-            cached = (ad, node_prefix)
-            self._walk[hypothesis.id] = cached
-        ad, node_prefix = cached
-        seg = np.clip(np.searchsorted(nodes, frames, side="left") - 1, 0, None)
-        odom_prefix = self.chain.prefix
-        delta = odom_prefix[frames] - odom_prefix[nodes[seg]]
-        out = np.empty((len(self.chain), 3, 3))
-        out[frames] = node_prefix[seg] + ad[seg] @ delta @ np.swapaxes(ad[seg], -1, -2)
-        return out
-
-    def _condition(self, hypothesis: Hypothesis) -> _Conditioning:
-        """The hypothesis' loops (at most ``covariance_loops``, evenly spread in time) as a Gaussian-
-        process update of the odometry random walk, in each loop's local coordinates
-        (``e_l = Ad(X_q)⁻¹ (ξ_q - ξ_m)``, the tangent space of its factor's residual):
-        ``K = A P Aᵀ + R`` over those loops, inverted once per hypothesis."""
-        cond = self._cond.get(hypothesis.id)
-        if cond is not None:
-            return cond
-        ids = np.asarray(hypothesis.constraint_ids, dtype=np.int64)
-        if len(ids) > self.plus.covariance_loops:
-            pick = np.linspace(0, len(ids) - 1, self.plus.covariance_loops).round().astype(np.int64)
-            ids = ids[np.argsort(self._q[ids], kind="stable")][pick]
-        m, q = self._m[ids], self._q[ids]
-        n = len(ids)
-        if n:
-            prefix = self._random_walk(hypothesis, np.unique(np.concatenate([m, q])))
-            a = pose_graph.se2_adjoint_inverse(hypothesis.poses_at(self.chain, q))
-            p = pose_graph.pair_covariance(prefix, m[:, None], q[:, None], m[None, :], q[None, :])  # (n, n, 3, 3)
-            p = a[:, None] @ p @ np.swapaxes(a, -1, -2)[None, :]
-            k = p.transpose(0, 2, 1, 3).reshape(3 * n, 3 * n)
-            for j, c in enumerate(ids):
-                k[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] += self._r[c]
-            blocks = np.zeros((3 * n, 3 * n))
-            for j in range(n):
-                blocks[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = a[j]
-            weight = blocks.T @ _spd_inverse(k) @ blocks  # Aᵀ K⁻¹ A: the update in world coordinates
-        else:
-            weight = np.zeros((0, 0))
-        cond = _Conditioning(m, q, weight)
-        self._cond[hypothesis.id] = cond
-        return cond
+    def _predicted(self, hypothesis: Hypothesis, ids: np.ndarray) -> np.ndarray:
+        """``(K, 3, 3)`` Laplace covariance of each constraint's relative pose ``x_m⁻¹ x_q`` under
+        the hypothesis' own pose graph: GTSAM's marginals at its solution, with ``m`` and ``q``
+        added as nodes (:func:`~.pose_graph.relative_covariances`)."""
+        members = list(hypothesis.constraint_ids)
+        ends = [[0], self._m[members], self._q[members], self._m[ids], self._q[ids]]
+        nodes = np.unique(np.concatenate(ends)).astype(np.int64)
+        graph = pose_graph.build_reduced_graph(self.chain, nodes, self._factors(members))
+        poses = hypothesis.poses_at(self.chain, nodes)
+        return pose_graph.relative_covariances(graph, poses, nodes, self._m[ids], self._q[ids])
 
     def mahalanobis(self, hypothesis: Hypothesis, constraint_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Innovation test of each constraint under the hypothesis.
 
         The innovation ``r = Log(z⁻¹ x_m⁻¹ x_q)`` at the hypothesis' solution has covariance
-        ``C = R + Σ_pred``, with ``Σ_pred`` the covariance of the relative pose ``x_m⁻¹ x_q`` given
-        the odometry (a random walk linearised along the hypothesis) and the hypothesis' loops
-        (:meth:`_condition`). Leaving loops out of the conditioning only makes ``Σ_pred`` larger, so
-        the test errs towards "consistent"; it is meaningful for constraints outside the
-        hypothesis (for its own members, the residual at the solution is tested instead).
+        ``C = R + Σ_pred`` (:meth:`_predicted`): tight where the hypothesis has closed loops,
+        loose after a long open traverse. A hypothesis never changes, so each value is computed
+        once (cached until the hypothesis is forgotten). The test is meaningful for constraints
+        outside the hypothesis; members have :meth:`leave_one_out`.
 
         Returns:
-            ``(d2 (K,), chi2 (K,))``: ``rᵀ C⁻¹ r``, and the plain whitened residual ``rᵀ R⁻¹ r``.
+            ``(d2 (K,), chi2 (K,))``: ``rᵀ C⁻¹ r`` (exact below ``explore_chi2``; above it, the lower
+            bound that screened it out), and the plain whitened residual ``rᵀ R⁻¹ r``.
         """
         self._sync()
         ids = np.asarray(constraint_ids, dtype=np.int64)
         if len(ids) == 0:
             return np.zeros(0), np.zeros(0)
-        cond = self._condition(hypothesis)
-        m, q = self._m[ids], self._q[ids]
-        x_m, x_q = np.split(hypothesis.poses_at(self.chain, np.concatenate([m, q])), 2)
-        r = pose_graph.se2_logmap(pose_graph.se2_between(self._z[ids], pose_graph.se2_between(x_m, x_q)))
-        prefix = self._random_walk(hypothesis, np.unique(np.concatenate([m, q, cond.m, cond.q])))
-        a_c = pose_graph.se2_adjoint_inverse(x_q)
-        prior = a_c @ pose_graph.pair_covariance(prefix, m, q, m, q) @ np.swapaxes(a_c, -1, -2)
-        n = len(cond.m)
-        if n:
-            p_cl = pose_graph.pair_covariance(prefix, m[:, None], q[:, None], cond.m[None, :], cond.q[None, :])  # (K, n, 3, 3)
-            p_cl = p_cl.transpose(0, 2, 1, 3).reshape(len(ids), 3, 3 * n)
-            correction = np.einsum("kai,ij,kbj->kab", p_cl, cond.weight, p_cl, optimize=True)
-            prior = prior - a_c @ correction @ np.swapaxes(a_c, -1, -2)
-        cov = self._r[ids] + 0.5 * (prior + np.swapaxes(prior, -1, -2))
-        return mahalanobis_d2(r, cov), mahalanobis_d2(r, self._r[ids])
+        r = self._residuals(hypothesis, ids)
+        chi2 = mahalanobis_d2(r, self._r[ids])
+        cache = self._d2.setdefault(hypothesis.id, {})
+        todo = np.array([k for k, c in enumerate(ids.tolist()) if c not in cache], dtype=np.int64)
+        if len(todo):
+            missing = ids[todo]
+            # Screen: loops only shrink Σ_pred below the odometry's own segment covariance, so
+            # ``d²`` under that is a lower bound; beyond explore_chi2 it is kept as the value.
+            bound = mahalanobis_d2(r[todo], self._r[missing] + self.chain.segment_covariance(self._m[missing], self._q[missing]))
+            d2 = bound.copy()
+            near = bound < self.plus.explore_chi2
+            if near.any():
+                d2[near] = mahalanobis_d2(r[todo[near]], self._r[missing[near]] + self._predicted(hypothesis, missing[near]))
+            cache.update(zip(missing.tolist(), d2.tolist()))
+        return np.array([cache[c] for c in ids.tolist()]), chi2
+
+    def leave_one_out(self, hypothesis: Hypothesis, member_ids: np.ndarray) -> np.ndarray:
+        """``(K,)`` leave-one-out statistic of members: ``rᵀ (R - Σ_pred)⁻¹ r`` at the solution,
+        where ``Σ_pred`` is the covariance of the member's relative pose under the graph that
+        includes it. For a linear-Gaussian graph this equals the member's innovation under the
+        graph without it, and the drop in the graph's chi-square if it were removed (for
+        ``R - Σ_pred = R C⁻¹ R`` and ``r = R C⁻¹ e``). A member that is the only evidence for its
+        relative pose has ``R - Σ_pred`` near zero; where that is not positive definite the
+        statistic is ``0`` (keep)."""
+        ids = np.asarray(member_ids, dtype=np.int64)
+        if len(ids) == 0:
+            return np.zeros(0)
+        r = self._residuals(hypothesis, ids)
+        remaining = self._r[ids] - self._predicted(hypothesis, ids)
+        remaining = 0.5 * (remaining + np.swapaxes(remaining, -1, -2))
+        good = np.all(np.linalg.eigvalsh(remaining) > 1e-9 * np.trace(self._r[ids], axis1=1, axis2=2)[:, None], axis=1)
+        out = np.zeros(len(ids))
+        if good.any():
+            out[good] = mahalanobis_d2(r[good], remaining[good])
+        return out
+
+    def _residuals(self, hypothesis: Hypothesis, ids: np.ndarray) -> np.ndarray:
+        """``(K, 3)`` loop residuals ``Log(z⁻¹ x_m⁻¹ x_q)`` at the hypothesis' solution."""
+        x_m, x_q = np.split(hypothesis.poses_at(self.chain, np.concatenate([self._m[ids], self._q[ids]])), 2)
+        return pose_graph.se2_logmap(pose_graph.se2_between(self._z[ids], pose_graph.se2_between(x_m, x_q)))
 
     def evaluate(self, hypothesis: Hypothesis, constraint_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ids = np.asarray(constraint_ids, dtype=np.int64)
@@ -385,21 +368,22 @@ class PlusModel:
         return ok, support
 
     def _evaluate(self, hypothesis: Hypothesis, constraint_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Consistent: a constraint outside the hypothesis passes the chi-square test of its
-        innovation, ``d² < gate_chi2``; a member passes it on its residual at the solution,
-        ``rᵀR⁻¹r < gate_chi2`` (members were admitted, and pruned, by their innovation and
-        leave-one-out tests when the hypothesis was refined).
+        """Consistent: the hypothesis' solution satisfies the constraint, ``rᵀR⁻¹r < gate_chi2``
+        (members and others alike; a cheap vectorised test, so every kept hypothesis is checked
+        against every constraint). The innovation test under the hypothesis' covariance
+        (:meth:`mahalanobis`) decides what a hypothesis absorbs and which draws are plausible.
 
         Support: ``gate - min(rᵀR⁻¹r, gate)``, the truncated-least-squares cost the hypothesis'
         solution saves on the constraint; :meth:`rank_key` subtracts the odometry chi-square.
         """
         ids = np.asarray(constraint_ids, dtype=np.int64)
-        d2, chi2 = self.mahalanobis(hypothesis, ids)
+        if len(ids) == 0:
+            return np.zeros(0, dtype=bool), np.zeros(0)
+        self._sync()
+        chi2 = mahalanobis_d2(self._residuals(hypothesis, ids), self._r[ids])
         eligible = self._eligible_mask()[ids]
         gate = self.plus.gate_chi2
-        member = np.fromiter((int(c) in hypothesis.constraint_set for c in ids), dtype=bool, count=len(ids))
-        consistent = np.where(member, chi2 < gate, d2 < gate) & eligible
-        return consistent, np.where(eligible, gate - np.minimum(chi2, gate), 0.0)
+        return (chi2 < gate) & eligible, np.where(eligible, gate - np.minimum(chi2, gate), 0.0)
 
     def draw_weights(self, parent: Hypothesis, candidates: np.ndarray) -> np.ndarray:
         """Sequential selection draws among the constraints inconsistent with the parent; ``ilv+``
@@ -431,9 +415,8 @@ class PlusModel:
         return 0.0 if hypothesis.chi2 is None else hypothesis.chi2
 
     def forget(self, hypothesis_id: int) -> None:
-        self._cond.pop(hypothesis_id, None)
+        self._d2.pop(hypothesis_id, None)
         self._evaluated.pop(hypothesis_id, None)
-        self._walk.pop(hypothesis_id, None)
         if hypothesis_id != 0:
             self._chain_chi2.pop(hypothesis_id, None)
 
@@ -445,18 +428,6 @@ class PlusModel:
         except pose_graph.OptimisationFailed:
             return top.trajectory(self.chain)
         return self.chain.interpolate(nodes, poses, np.arange(len(self.chain)))
-
-
-def _inverse(poses: np.ndarray) -> np.ndarray:
-    return pose_graph.se2_between(poses, np.zeros_like(poses))
-
-
-def _spd_inverse(matrix: np.ndarray) -> np.ndarray:
-    """Inverse of a symmetric positive-definite matrix, equilibrated (``D^-½ K D^-½``) first."""
-    d = 1.0 / np.sqrt(np.diag(matrix))
-    scaled = matrix * d[:, None] * d[None, :]
-    inv = np.linalg.inv(0.5 * (scaled + scaled.T))
-    return inv * d[:, None] * d[None, :]
 
 
 # ----------------------------------------------------------------------------------------------

@@ -80,8 +80,8 @@ def test_ilv_plus_keeps_precision_with_far_false_loops():
 
 
 def test_innovation_covariance_matches_gtsam_marginals():
-    """ilv+'s Gaussian-process innovation equals the one from GTSAM's marginal covariances of the
-    same graph, and shows an error that the solution including the loop hides."""
+    """ilv+'s innovation (marginals of its reduced graph) equals the one from GTSAM's marginal
+    covariances of the full graph, and shows an error that the solution including the loop hides."""
     import gtsam
 
     from lcv_replay.verification import pose_graph as pg
@@ -119,6 +119,45 @@ def test_innovation_covariance_matches_gtsam_marginals():
     assert innovation == pytest.approx(expected, rel=0.05)
     assert innovation > 10.0  # the 1.8 m error is visible before the loop is added ...
     assert in_sample < 0.5 * innovation  # ... and partly hidden by a solution that includes it
+
+
+def test_leave_one_out_equals_the_chi2_drop_of_removing_the_loop():
+    """The leave-one-out statistic of a member is what removing it saves in chi-square (two GTSAM
+    solves), and flags a false loop at the open end of the trajectory that fits its own solution."""
+    from lcv_replay.verification import pose_graph as pg
+
+    world = circle_world(num_false=0, yaw_bias_rad=0.0005)
+    n = len(world.odom)
+    loops = [_measured(world, q, q - world.frames_per_lap) for q in range(world.frames_per_lap + 5, n - 40, 10)]
+    # a false "same place" loop from the last frame to a place 7.5 m away along the lap
+    loops.append(LoopCandidate(n - 1, n - 1 - world.frames_per_lap + 4, T_match_query=Pose2D(0.0, 0.0, 0.0), information=MEASURED_INFORMATION))
+    verifier = make_verifier("ilv+", SMALL, odometry_information=ODOM_INFORMATION)
+    for k, pose in enumerate(world.odom):
+        verifier.add_frame(k, Pose2D(*pose))
+        verifier.add_candidates([c for c in loops if c.query_frame == k])
+    verifier._flush()
+    model = verifier.model
+    model.plus = dataclasses.replace(model.plus, closure_rounds=0)
+    root = Hypothesis(0, None, (), 0, np.zeros(1, dtype=np.int64), world.odom[:1].copy())
+    cons = verifier.history.constraints
+    true_ids = tuple(range(len(loops) - 1))
+
+    def chi2_drop(members, c):
+        def solve(ids):
+            graph = pg.build_graph(world.odom, ODOM_INFORMATION, [cons[i] for i in ids], loop_default_information=ODOM_INFORMATION)
+            return pg.optimise_lm(graph, world.odom).chi2
+
+        return solve(members) - solve([i for i in members if i != c])
+
+    true_only = model.solve(root, true_ids, hypothesis_id=1, window=0, added=None)
+    for c, statistic in zip((0, 3, len(true_ids) - 1), model.leave_one_out(true_only, np.array([0, 3, len(true_ids) - 1]))):
+        assert statistic == pytest.approx(chi2_drop(true_ids, c), rel=0.05, abs=0.2)
+    everything = model.solve(root, true_ids + (len(loops) - 1,), hypothesis_id=2, window=0, added=None)
+    false_id = np.array([len(loops) - 1])
+    loo = model.leave_one_out(everything, false_id)[0]
+    gate = model.plus.gate_chi2
+    assert loo > gate and chi2_drop(true_ids + (len(loops) - 1,), len(loops) - 1) > gate
+    assert model.mahalanobis(everything, false_id)[1][0] < gate  # it fits its own solution
 
 
 def test_robustslam_kitti_06_alpha_050():
