@@ -52,6 +52,7 @@ The reported trajectory of ``ilv+`` is the reduced-graph solution of its accepte
 from __future__ import annotations
 
 import dataclasses
+import logging
 from typing import Sequence
 
 import numpy as np
@@ -65,6 +66,8 @@ from lcv_replay.verification.hypotheses import Hypothesis
 from lcv_replay.verification.incremental import IncrementalVerifier
 from lcv_replay.verification.pose_graph import OdometryChain
 from lcv_replay.verification.registry import register
+
+log = logging.getLogger(__name__)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -385,14 +388,19 @@ class PlusModel:
         gate = self.plus.gate_chi2
         return (chi2 < gate) & eligible, np.where(eligible, gate - np.minimum(chi2, gate), 0.0)
 
-    def draw_weights(self, parent: Hypothesis, candidates: np.ndarray) -> np.ndarray:
+    def draw_weights(self, parent: Hypothesis, candidates: np.ndarray) -> np.ndarray | None:
         """Sequential selection draws among the constraints inconsistent with the parent; ``ilv+``
         prefers the nearly consistent ones, ``w = exp(-(d² - gate) / (2 gate))``, floored at
         ``1e-3``, and never tries one beyond ``explore_chi2`` (a child built on it would have to
         bend the parent far beyond its uncertainty). A true loop that only a joint correction can
         satisfy (its innovation just above the gate) is then tried long before the hundreds of
-        far-off false candidates, and a window with nothing plausible to try costs nothing."""
-        d2 = self.mahalanobis(parent, candidates)[0]
+        far-off false candidates, and a window with nothing plausible to try costs nothing. If
+        GTSAM cannot compute the parent's marginals, the draw is the paper's uniform one."""
+        try:
+            d2 = self.mahalanobis(parent, candidates)[0]
+        except pose_graph.OptimisationFailed as exc:
+            log.warning("ilv+: hypothesis %d: uniform draw (%s)", parent.id, exc.message)
+            return None
         gate = self.plus.gate_chi2
         weights = np.maximum(np.exp(-np.maximum(d2 - gate, 0.0) / (2.0 * gate)), 1e-3)
         return np.where(d2 < self.plus.explore_chi2, weights, 0.0)

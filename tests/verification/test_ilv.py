@@ -204,3 +204,21 @@ def test_ilv_plus_draws_prefer_plausible_constraints(near_false_world):
     assert (weights == 0).any() and (weights > 0).any()
     order = np.argsort(d2)
     assert np.all(np.diff(weights[order]) <= 1e-12)  # never prefers a less plausible constraint
+
+
+def test_ilv_plus_survives_failing_marginals(monkeypatch, caplog):
+    """GTSAM failing on a hypothesis' marginals drops that child or falls back to the paper's
+    uniform draw; it never ends the run."""
+    from lcv_replay.verification import pose_graph as pg
+
+    def fail(*args, **kwargs):
+        raise pg.OptimisationFailed("marginal covariances failed: indeterminant system (test)")
+
+    monkeypatch.setattr(pg, "relative_covariances", fail)
+    world = circle_world(num_false=5, seed=1)
+    verifier = make_verifier("ilv+", SMALL, odometry_information=ODOM_INFORMATION)
+    with caplog.at_level("WARNING"):
+        feed(verifier, world)
+        result = verifier.result()
+    assert len(result.trajectory) == len(world.odom)
+    assert "uniform draw" in caplog.text
