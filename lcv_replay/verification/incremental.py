@@ -41,7 +41,7 @@ import numpy as np
 from lcv_replay.errors import VerificationError
 from lcv_replay.records import LoopCandidate, Pose2D
 from lcv_replay.verification.base import Constraint, HypothesisSummary, VerificationResult, VerifierStep
-from lcv_replay.verification.baselines import ConstraintHistory, default_informations
+from lcv_replay.verification.baselines import ConstraintHistory, checked_frame, default_informations
 from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.consistency import ConsistencyTable, position_consistent
 from lcv_replay.verification.hypotheses import (
@@ -156,17 +156,7 @@ class IncrementalVerifier:
 
     # ------------------------------------------------------------------ Verifier protocol
     def add_frame(self, frame_index: int, odom: Pose2D) -> None:
-        if self._result is not None:
-            raise VerificationError(f"{self.name}: add_frame after result()", fix="build a new verifier")
-        if frame_index != self.num_frames:
-            raise VerificationError(
-                f"{self.name}: frame {frame_index} added, expected frame {self.num_frames}",
-                fix="feed frames in order, each exactly once",
-            )
-        values = (float(odom[0]), float(odom[1]), float(odom[2]))
-        if not all(np.isfinite(values)):
-            raise VerificationError(f"{self.name}: frame {frame_index} has non-finite odometry {list(values)}")
-        self._pending.append(values)
+        self._pending.append(checked_frame(self.name, frame_index, self.num_frames, odom, finished=self._result is not None))
 
     def add_candidates(self, candidates: Sequence[LoopCandidate]) -> list[Constraint]:
         if self._result is not None:
