@@ -106,7 +106,8 @@ class VerifyRow:
     consistent with the top hypothesis (paper sec. II-A); ``ate_rmse_m`` after SE(2) alignment.
     ``window_time_*`` are the verifier's wall time per window step (``ilv``'s incremental work);
     ``cpu_time_s`` is the process CPU time of the run (steadier than wall time on a shared machine,
-    but it also counts GTSAM's worker threads, if any).
+    but it also counts GTSAM's worker threads, if any). ``gate_chi2`` is the chi-square gate in
+    force at the end (``ilv+`` calibrates it to the data; ``None`` for methods without one).
     """
 
     log: str
@@ -137,6 +138,7 @@ class VerifyRow:
     windows: int
     window_time_mean_s: float | None
     window_time_max_s: float | None
+    gate_chi2: float | None
     seed: int
     case: str | None = None
     config: dict[str, Any] = field(default_factory=dict)
@@ -266,6 +268,7 @@ def verify_inputs(
         windows=len(steps),
         window_time_mean_s=float(np.mean(window_times)) if window_times else None,
         window_time_max_s=float(np.max(window_times)) if window_times else None,
+        gate_chi2=result.last_step.gate_chi2 if result.last_step else None,
         seed=config.seed,
         case=case,
         config=to_dict(config),

@@ -138,6 +138,7 @@ def default_blueprint(*, has_images: bool, has_retrieval: bool):
                     f"+ {metric_path('hypotheses')}",
                 ],
             ),
+            rrb.TimeSeriesView(name="Gate χ² (declared noise units)", origin=METRICS, contents=[f"+ {metric_path('gate_chi2')}"]),
             rrb.TimeSeriesView(
                 name="Stage times [s]",
                 origin=METRICS,

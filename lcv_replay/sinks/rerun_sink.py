@@ -566,6 +566,8 @@ class RerunSink(BaseSink):
         ):
             if value is not None and np.isfinite(value):
                 rec.log(bp.metric_path(name), rr.Scalars(float(value)))
+        if update.step.gate_chi2 is not None:  # ilv+: the chi-square gate, calibrated to the data
+            rec.log(bp.metric_path("gate_chi2"), rr.Scalars(float(update.step.gate_chi2)))
         timings = update.step.timings_s
         if timings:
             if self._stages is None:  # one entity, one instance per stage (fixed at the first step)

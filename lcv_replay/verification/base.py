@@ -82,6 +82,8 @@ class VerifierStep:
         consistency: ``(H, C)`` bool, rows in ``ranking`` order, columns constraint ids 0..C-1.
         timings_s: seconds spent per stage in this step, e.g. ``{"optimise": .., "score": ..}``.
         dropped: ``(hypothesis_id, reason)`` for hypotheses dropped (optimiser failure, pruning).
+        gate_chi2: the chi-square gate in force in this step, in the declared noise units
+            (``ilv+`` calibrates it to the data); ``None`` for methods without one.
     """
 
     frame_index: int
@@ -95,6 +97,7 @@ class VerifierStep:
     consistency: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=bool))
     timings_s: dict[str, float] = field(default_factory=dict)
     dropped: tuple[tuple[int, str], ...] = ()
+    gate_chi2: float | None = None
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,9 @@ nothing that can change after both exist, and is computed exactly once:
 
 * a new constraint adds a column, computed for every kept hypothesis;
 * a new hypothesis adds a row, computed for every constraint of the history;
-* pruning a hypothesis frees its row; nothing else is ever recomputed.
+* pruning a hypothesis frees its row; nothing else is ever recomputed, unless the test itself
+  changes (``ilv+`` calibrates its chi-square gate to the data once per window, and then rewrites
+  the kept rows: :meth:`ConsistencyTable.rewrite`).
 
 Space is ``O(max_hypotheses × C)`` booleans, and each score is kept as a running row sum.
 """
@@ -122,12 +124,7 @@ class ConsistencyTable:
         ``(C,)`` float or ``None`` (zeros)."""
         if hypothesis_id in self._slot:
             raise VerificationError(f"hypothesis {hypothesis_id} is already in the consistency table")
-        row = np.asarray(row, dtype=bool)
-        if row.shape != (self._num_columns,):
-            raise VerificationError(f"row has shape {row.shape}, expected ({self._num_columns},)")
-        support = np.zeros(row.shape) if support is None else np.asarray(support, dtype=np.float64)
-        if support.shape != row.shape:
-            raise VerificationError(f"support has shape {support.shape}, expected {row.shape}")
+        row, support = self._checked_row(row, support)
         if self._free:
             slot = self._free.pop()
         else:
@@ -166,6 +163,16 @@ class ConsistencyTable:
         self._num_columns += k
         self.entries_computed += block.size
 
+    def rewrite(self, hypothesis_id: int, row: np.ndarray, support: np.ndarray | None = None) -> None:
+        """Replace a kept hypothesis' row (its test changed: ``ilv+`` recalibrated its gate)."""
+        slot = self._slot_of(hypothesis_id)
+        row, support = self._checked_row(row, support)
+        self._data[slot, : self._num_columns] = row
+        self._support[slot, : self._num_columns] = support
+        self._score[hypothesis_id] = int(row.sum())
+        self._support_sum[hypothesis_id] = float(support.sum())
+        self.entries_computed += row.size
+
     def remove(self, hypothesis_ids: Iterable[int]) -> None:
         """Drop rows (pruned hypotheses); their slots are reused."""
         for h in hypothesis_ids:
@@ -175,6 +182,15 @@ class ConsistencyTable:
             self._free.append(slot)
 
     # ------------------------------------------------------------------ internals
+    def _checked_row(self, row: np.ndarray, support: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        row = np.asarray(row, dtype=bool)
+        if row.shape != (self._num_columns,):
+            raise VerificationError(f"row has shape {row.shape}, expected ({self._num_columns},)")
+        support = np.zeros(row.shape) if support is None else np.asarray(support, dtype=np.float64)
+        if support.shape != row.shape:
+            raise VerificationError(f"support has shape {support.shape}, expected {row.shape}")
+        return row, support
+
     def _require(self, hypothesis_id: int) -> int:
         if hypothesis_id not in self._slot:
             raise VerificationError(f"hypothesis {hypothesis_id} is not in the consistency table")

@@ -21,8 +21,8 @@ windows, pruning) and changes what the paper leaves weak:
    the hypothesis' own pose graph at its solution (GTSAM's marginals), so the test is tight where
    the hypothesis has closed loops and loose after a long open traverse. A constraint outside the
    hypothesis is plausible when its innovation passes the chi-square gate,
-   ``rᵀ (R + Σ_pred)⁻¹ r < gate_chi2`` (3 dof, 0.99). The consistency table itself holds the
-   cheaper question "does the hypothesis' solution satisfy it", ``rᵀ R⁻¹ r < gate_chi2``.
+   ``rᵀ (R + Σ_pred)⁻¹ r < gate`` (3 dof, 0.99, in the declared units; see 7). The consistency table itself holds the
+   cheaper question "does the hypothesis' solution satisfy it", ``rᵀ R⁻¹ r < gate``.
 2. **Ranking by the truncated-least-squares cost** ``J = χ²_odometry + Σ_c min(χ²_c, gate)`` of the
    hypothesis' solution over the whole history (the objective GNC-TLS minimises), instead of the
    count of consistent constraints. Bending the odometry to satisfy a false loop, or a group of
@@ -45,6 +45,13 @@ windows, pruning) and changes what the paper leaves weak:
    inconsistent with the parent, but nearly consistent ones are preferred (:meth:`PlusModel.draw_weights`).
 6. Accepted = the rank-1 hypothesis' own constraints that its solution satisfies.
    ``min_loop_gap_frames`` (default 0) can drop candidates too close in time.
+7. **The gate is calibrated to the data** (:meth:`PlusModel.recalibrate`): declared covariances
+   are often far from the real noise (Vertigo Manhattan's are about 40 times too loose, which lets a
+   false loop at the loosely held end of the trajectory pass a gate of 11.34). At each window end
+   the leave-one-out statistics of the best hypothesis' loops are fitted as a scaled, possibly
+   heavy-tailed F variable (:mod:`~lcv_replay.verification.noise_scale`) and the gate becomes
+   ``min(gate_chi2, its 0.9999 quantile)``; every test above uses the gate in force. Heavy-tailed
+   data (KITTI) keep the configured gate.
 
 The reported trajectory of ``ilv+`` is the reduced-graph solution of its accepted set, interpolated.
 """
@@ -64,6 +71,7 @@ from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.consistency import mahalanobis_d2, position_consistent
 from lcv_replay.verification.hypotheses import Hypothesis
 from lcv_replay.verification.incremental import IncrementalVerifier
+from lcv_replay.verification.noise_scale import NoiseFit, calibrated_gate
 from lcv_replay.verification.pose_graph import OdometryChain
 from lcv_replay.verification.registry import register
 
@@ -77,6 +85,8 @@ log = logging.getLogger(__name__)
 
 class PaperModel:
     """``ilv``: full-graph GTSAM hypotheses, the 10 m position test, score = consistent count."""
+
+    gate_chi2 = None
 
     def __init__(self, chain: OdometryChain, history: ConstraintHistory, config: VerificationConfig):
         self.chain = chain
@@ -137,6 +147,9 @@ class PaperModel:
     def draw_weights(self, parent: Hypothesis, candidates: np.ndarray) -> None:
         return None
 
+    def recalibrate(self, top: Hypothesis) -> bool:
+        return False
+
     def accepted(self, top: Hypothesis, consistent: np.ndarray) -> np.ndarray:
         return consistent
 
@@ -164,6 +177,51 @@ class PlusModel:
         self._d2: dict[int, dict[int, float]] = {}  # per hypothesis: innovation d² of the constraints tested
         self._chain_chi2: dict[int, float] = {0: 0.0}  # odometry chi-square of each hypothesis' solution
         self._evaluated: dict[int, tuple[Hypothesis, np.ndarray, np.ndarray]] = {}  # last whole-history evaluation
+        self.gate_chi2 = self.plus.gate_chi2  # the gate in force (declared units), see recalibrate()
+        self.noise_fit: NoiseFit | None = None  # the fit behind it, if calibrated
+        self._calibrated_on: int | None = None  # the hypothesis it was fitted on
+
+    @property
+    def explore_chi2(self) -> float:
+        """``explore_chi2``, scaled with the gate in force."""
+        return self.plus.explore_chi2 * self.gate_chi2 / self.plus.gate_chi2
+
+    # ------------------------------------------------------------------ noise calibration
+    def recalibrate(self, top: Hypothesis) -> bool:
+        """Fit the noise the best hypothesis' loops show and tighten the gate to it.
+
+        The leave-one-out statistics (:meth:`leave_one_out`) of at most ``calibration_sample_loops``
+        of its loops (evenly spaced in arrival order) are fitted as ``d² / (3 s) ~ F(3, ν)``
+        (:func:`~lcv_replay.verification.noise_scale.fit_noise`), and the gate becomes
+        ``min(gate_chi2, calibration_confidence quantile)``: where the declared covariances are far
+        looser than the data (Vertigo Manhattan), a false loop at a loosely held part of the graph
+        no longer fits; where the errors are heavy-tailed (KITTI), the quantile lies beyond the
+        configured gate, which then stays. With fewer than ``calibration_min_loops`` loops the
+        configured gate applies. Returns whether the gate changed (the caller re-evaluates its table)."""
+        if not self.plus.calibrate_gate or top.id == self._calibrated_on:
+            return False
+        self._calibrated_on = top.id
+        gate, fit = self.plus.gate_chi2, None
+        members = np.sort(np.asarray(top.constraint_ids, dtype=np.int64))
+        if len(members) >= self.plus.calibration_min_loops:
+            take = np.unique(np.linspace(0, len(members) - 1, min(len(members), self.plus.calibration_sample_loops)).round().astype(np.int64))
+            try:
+                d2 = self.leave_one_out(top, members[take])
+            except pose_graph.OptimisationFailed as exc:
+                log.warning("ilv+: hypothesis %d: gate not recalibrated (%s)", top.id, exc.message)
+                return False
+            if np.count_nonzero(d2 > 0) >= self.plus.calibration_min_loops:
+                quantile, fit = calibrated_gate(d2, self.plus.calibration_confidence)
+                gate = min(gate, quantile)
+        self.noise_fit = fit
+        if gate == self.gate_chi2:
+            return False
+        if gate > self.gate_chi2:
+            self._d2.clear()  # cached screening bounds were only valid below the old explore_chi2
+        self._evaluated.clear()
+        log.debug("ilv+: gate %.4g -> %.4g (hypothesis %d, %s)", self.gate_chi2, gate, top.id, fit)
+        self.gate_chi2 = gate
+        return True
 
     # ------------------------------------------------------------------ constraints
     def _sync(self) -> None:
@@ -215,14 +273,14 @@ class PlusModel:
         if len(candidates) == 0:
             return None
         d2, chi2 = self.mahalanobis(parent, candidates)
-        passing = d2 < self.plus.gate_chi2
+        passing = d2 < self.gate_chi2
         extra = candidates[passing]
         if len(extra) == 0:
             return None
         child = self.solve(parent, tuple(parent.constraint_ids) + tuple(int(c) for c in extra), hypothesis_id=hypothesis_id, window=window, added=None)
         if self._key(child) >= self._key(parent):
             return child
-        satisfied = chi2[passing] < self.plus.gate_chi2
+        satisfied = chi2[passing] < self.gate_chi2
         if not satisfied.any() or satisfied.all():
             return child
         self.forget(hypothesis_id)
@@ -260,7 +318,7 @@ class PlusModel:
         ok, support = self.evaluate(hypothesis, all_ids)
         key = self.rank_key(hypothesis, 0, float(support.sum()))
         previous_odometry = self._chain_chi2[hypothesis_id]
-        gate = self.plus.gate_chi2
+        gate = self.gate_chi2
         for _ in range(self.plus.closure_rounds):
             members = np.zeros(len(all_ids), dtype=bool)
             members[list(ids)] = True
@@ -328,7 +386,7 @@ class PlusModel:
             # ``d²`` under that is a lower bound; beyond explore_chi2 it is kept as the value.
             bound = mahalanobis_d2(r[todo], self._r[missing] + self.chain.segment_covariance(self._m[missing], self._q[missing]))
             d2 = bound.copy()
-            near = bound < self.plus.explore_chi2
+            near = bound < self.explore_chi2
             if near.any():
                 d2[near] = mahalanobis_d2(r[todo[near]], self._r[missing[near]] + self._predicted(hypothesis, missing[near]))
             cache.update(zip(missing.tolist(), d2.tolist()))
@@ -385,7 +443,7 @@ class PlusModel:
         self._sync()
         chi2 = mahalanobis_d2(self._residuals(hypothesis, ids), self._r[ids])
         eligible = self._eligible_mask()[ids]
-        gate = self.plus.gate_chi2
+        gate = self.gate_chi2
         return (chi2 < gate) & eligible, np.where(eligible, gate - np.minimum(chi2, gate), 0.0)
 
     def draw_weights(self, parent: Hypothesis, candidates: np.ndarray) -> np.ndarray | None:
@@ -401,9 +459,9 @@ class PlusModel:
         except pose_graph.OptimisationFailed as exc:
             log.warning("ilv+: hypothesis %d: uniform draw (%s)", parent.id, exc.message)
             return None
-        gate = self.plus.gate_chi2
+        gate = self.gate_chi2
         weights = np.maximum(np.exp(-np.maximum(d2 - gate, 0.0) / (2.0 * gate)), 1e-3)
-        return np.where(d2 < self.plus.explore_chi2, weights, 0.0)
+        return np.where(d2 < self.explore_chi2, weights, 0.0)
 
     def accepted(self, top: Hypothesis, consistent: np.ndarray) -> np.ndarray:
         """The rank-1 hypothesis' own constraints whose residual at its solution passes the gate

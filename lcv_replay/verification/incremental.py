@@ -8,6 +8,8 @@ says how a hypothesis is solved, tested against constraints and ranked.
 Schedule, at the end of every window of ``W`` frames (and once more in :meth:`result` for the last,
 partial window):
 
+0. (``ilv+`` only) the model recalibrates its test to the rank-1 hypothesis
+   (:meth:`HypothesisModel.recalibrate`); if the test changed, the kept rows are rewritten;
 1. the constraints that arrived during the window add columns to the table (every kept hypothesis
    is tested against them; nothing else is recomputed, see :mod:`~.consistency`);
 2. (``ilv+`` only) the top hypotheses absorb the new constraints consistent with them
@@ -18,7 +20,8 @@ partial window):
    and adds one row to the table. With the paper's 10 × 10 that is ``N_g = 100`` per window. A
    parent is never extended twice by the same constraint (the child would be the same);
 4. after each iteration the lowest-ranked hypotheses are pruned so that at most ``max_hypotheses``
-   are kept (the odometry root is always kept and counts towards the bound);
+   are kept (the odometry root is always kept and counts towards the bound); (``ilv+`` only) the
+   rank-1 hypothesis after the iterations absorbs too, unless it already did in step 2;
 5. a :class:`~lcv_replay.verification.base.VerifierStep` reports the ranking, the generation edges,
    the accepted constraints (``ilv``: those consistent with the rank-1 hypothesis; ``ilv+``: the
    rank-1 hypothesis' own constraints that its solution satisfies), the top-k trajectories and
@@ -64,6 +67,9 @@ ABSORBED = -1
 class HypothesisModel(Protocol):
     """How hypotheses are solved, tested and ranked (``ilv`` and ``ilv+`` differ only here)."""
 
+    #: the chi-square gate in force, reported with each step (``None``: the model has none).
+    gate_chi2: float | None
+
     def eligible(self, constraints: Sequence[Constraint]) -> np.ndarray:
         """``(K,)`` bool: which of these (new) constraints may ever be drawn or accepted."""
 
@@ -94,6 +100,11 @@ class HypothesisModel(Protocol):
     def draw_weights(self, parent: Hypothesis, candidates: np.ndarray) -> np.ndarray | None:
         """Weights (``>= 0``; 0 = never) of the constraints a child of ``parent`` may be drawn
         with, or ``None`` for a uniform draw (``ilv``, the paper)."""
+
+    def recalibrate(self, top: Hypothesis) -> bool:
+        """Called at each window end with the current rank-1 hypothesis before anything else;
+        returns whether the consistency test changed, in which case every kept row is
+        re-evaluated (``ilv``: never)."""
 
     def accepted(self, top: Hypothesis, consistent: np.ndarray) -> np.ndarray:
         """``(C,)`` bool: the accepted loop closures given the rank-1 hypothesis and its row
@@ -226,6 +237,13 @@ class IncrementalVerifier:
         if 0 not in self.hypotheses:
             root = odometry_root(self.chain, window=self._window)
             self._keep(root, *self.model.evaluate(root, np.arange(first_new, dtype=np.int64)))
+        # 0. the model may recalibrate its test to the best hypothesis (ilv+): rows are rewritten
+        t = time.perf_counter()
+        if first_new and self.model.recalibrate(self.hypotheses[self.ranked_ids()[0]]):
+            old_ids = np.arange(first_new, dtype=np.int64)
+            for h in self.table.hypothesis_ids:
+                self.table.rewrite(h, *self.model.evaluate(self.hypotheses[h], old_ids))
+        timings["calibrate"] = time.perf_counter() - t
         # 1. new constraints -> new columns
         t = time.perf_counter()
         if new_ids.size:
@@ -238,13 +256,10 @@ class IncrementalVerifier:
         # 2-3. generation and pruning
         gen = _Generation(timings)
         all_ids = np.arange(len(constraints), dtype=np.int64)
+        absorbed: set[int] = set()
         if new_ids.size:
             for parent_id in self.ranked_ids()[: self.config.hypotheses_per_iteration]:
-                parent = self.hypotheses[parent_id]
-                self._try_child(
-                    gen, parent_id, ABSORBED, all_ids,
-                    lambda child_id: self.model.absorb(parent, hypothesis_id=child_id, window=self._window),
-                )
+                self._absorb(gen, parent_id, all_ids, absorbed)
         for _ in range(self.config.iterations_per_window):
             grew = False
             for parent_id in self.ranked_ids()[: self.config.hypotheses_per_iteration]:
@@ -266,14 +281,12 @@ class IncrementalVerifier:
                         parent, parent.constraint_ids + (added,), hypothesis_id=child_id, window=self._window, added=added
                     ),
                 )
-            t = time.perf_counter()
-            kept, pruned = prune(self.ranked_ids(), self.config.max_hypotheses, keep={0})
-            for rank, h in enumerate(pruned, start=len(kept) + 1):
-                self._forget(h)
-                gen.dropped.append((h, f"pruned at rank {rank}"))
-            timings["prune"] += time.perf_counter() - t
+            self._prune(gen)
             if not grew:
                 break  # nothing left to draw for the top hypotheses
+        # 3b. the best hypothesis found in this window absorbs what it now explains as well
+        if new_ids.size and self._absorb(gen, self.ranked_ids()[0], all_ids, absorbed):
+            self._prune(gen)
         # 4. report
         ranking_ids = self.ranked_ids()
         summaries = tuple(self._summary(h, rank) for rank, h in enumerate(ranking_ids, start=1))
@@ -296,6 +309,7 @@ class IncrementalVerifier:
             consistency=self.table.matrix(ranking_ids),
             timings_s=timings,
             dropped=tuple(gen.dropped),
+            gate_chi2=self.model.gate_chi2,
         )
         self._window += 1
         self._stepped_frames = n
@@ -303,6 +317,26 @@ class IncrementalVerifier:
         return step
 
     # ------------------------------------------------------------------ internals
+    def _prune(self, gen: "_Generation") -> None:
+        """Keep the ``max_hypotheses`` best-ranked (and the root)."""
+        t = time.perf_counter()
+        kept, pruned = prune(self.ranked_ids(), self.config.max_hypotheses, keep={0})
+        for rank, h in enumerate(pruned, start=len(kept) + 1):
+            self._forget(h)
+            gen.dropped.append((h, f"pruned at rank {rank}"))
+        gen.timings["prune"] += time.perf_counter() - t
+
+    def _absorb(self, gen: "_Generation", parent_id: int, all_ids: np.ndarray, absorbed: set[int]) -> bool:
+        """The :meth:`HypothesisModel.absorb` child of ``parent_id``, once per parent per window."""
+        if parent_id in absorbed:
+            return False
+        absorbed.add(parent_id)
+        parent = self.hypotheses[parent_id]
+        return self._try_child(
+            gen, parent_id, ABSORBED, all_ids,
+            lambda child_id: self.model.absorb(parent, hypothesis_id=child_id, window=self._window),
+        )
+
     def _try_child(self, gen: "_Generation", parent_id: int, added: int, all_ids: np.ndarray, make: Callable[[int], Hypothesis | None]) -> bool:
         """Create one child with ``make(child_id)``; keep it unless it fails, is ``None`` or repeats
         a kept constraint set. Returns whether a hypothesis was kept."""

@@ -69,7 +69,7 @@ def test_recording_has_the_entities_of_a_g2o_replay(square):
                  bp.HYPOTHESES_TREE, bp.HYPOTHESES_SEQUENCES, bp.TRAJ_ODOMETRY, bp.TRAJ_GROUND_TRUTH, bp.TRAJ_BEST,
                  bp.TRAJ_CURRENT, bp.EVENTS, bp.REPORT, bp.metric_path("precision"), bp.metric_path("recall"),
                  bp.metric_path("ate_rmse_m"), bp.metric_path("constraints"), bp.metric_path("hypotheses"),
-                 bp.metric_path("accepted")):
+                 bp.metric_path("accepted"), bp.metric_path("gate_chi2")):
         assert path in tables, f"{path} missing"
     assert bp.CAMERA_LEFT not in tables  # a g2o log has no images
     steps = tables[bp.HYPOTHESES_RANKS]

@@ -1,0 +1,102 @@
+"""Calibrating the chi-square gate of ``ilv+`` to the noise the data actually show (not in the paper).
+
+A pose graph's declared covariances are rarely its real ones. On Vertigo's Manhattan M3500 the
+solution with every true loop has an a-posteriori variance factor ``χ² / redundancy`` of 0.023: the
+declared odometry and loop covariances are about 40 times too loose, so a false loop that joins the
+loosely held end of the trajectory to a place it never visited passes a gate of 11.34 in the
+declared units (innovation ``d²`` of 4 to 8) while true loops sit below 0.4. On robustslam_kitti the
+factor is 0.2 to 0.9, but the errors are heavy-tailed (one true loop of KITTI 05 has a leave-one-out
+statistic of 93), so a Gaussian rescaling would reject true loops there.
+
+So the scale and the tail are fitted together: the leave-one-out statistics ``d²`` of the loops of
+the best hypothesis are modelled as a scaled F variable, ``d² / (3 s) ~ F(3, ν)`` (the innovation of
+a 3-dof multivariate Student-t residual with scale ``s``, ``ν`` degrees of freedom; ``ν → ∞`` is
+``s χ²(3)``), by maximum likelihood, and the gate in declared units is the ``confidence`` quantile
+of that fit: :func:`calibrated_gate`. ``ilv+`` only ever tightens its configured gate with it.
+Measured on the true loops of each suite case, with ``confidence`` 0.999 (issue 3): Manhattan
+``s`` 0.024, ``ν`` → ∞, gate 0.39 (no true loop above it, no false loop below it); KITTI 00 ``s``
+0.075, ``ν`` 2.8, gate 44; KITTI 05 gate 526 (the configured 11.34 applies).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lcv_replay.errors import VerificationError
+
+#: ``ν`` at which the fit counts as Gaussian (``s χ²(3)``).
+MAX_DOF = 1e4
+_MIN_DOF = 0.3
+
+
+@dataclass(frozen=True)
+class NoiseFit:
+    """A fitted scaled-F model of innovation statistics, ``d² / (3 s) ~ F(3, ν)``.
+
+    Attributes:
+        scale: ``s``, the variance factor relative to the declared covariances.
+        dof: ``ν``, the tail's degrees of freedom (``MAX_DOF`` = Gaussian).
+        samples: statistics the fit used.
+    """
+
+    scale: float
+    dof: float
+    samples: int
+
+    def quantile(self, confidence: float) -> float:
+        """The ``confidence`` quantile of ``d²`` under the fit (declared units)."""
+        from scipy import stats
+
+        if not 0.0 < confidence < 1.0:
+            raise VerificationError(f"confidence {confidence} must be in (0, 1)")
+        if self.dof >= MAX_DOF:
+            return float(self.scale * stats.chi2.ppf(confidence, 3))
+        return float(3.0 * self.scale * stats.f.ppf(confidence, 3, self.dof))
+
+
+def fit_noise(d2: np.ndarray) -> NoiseFit:
+    """Maximum-likelihood fit of ``d² / (3 s) ~ F(3, ν)`` to 3-dof innovation statistics.
+
+    Args:
+        d2: ``(K,)`` statistics, ``K >= 2``; values that are not finite and positive are ignored.
+
+    Raises:
+        VerificationError: fewer than two usable values.
+    """
+    from scipy import optimize, stats
+
+    x = np.asarray(d2, dtype=np.float64)
+    x = x[np.isfinite(x) & (x > 0)]
+    if len(x) < 2:
+        raise VerificationError(f"a noise fit needs at least 2 positive statistics, got {len(x)}")
+    log_x = np.log(x)
+
+    def nll(params: np.ndarray) -> float:
+        log_s, log_nu = params
+        nu = np.exp(log_nu)
+        s = np.exp(log_s)
+        if nu >= MAX_DOF:
+            return float(-np.sum(stats.chi2.logpdf(x / s, 3) - log_s))
+        return float(-np.sum(stats.f.logpdf(x / (3.0 * s), 3, nu) - np.log(3.0 * s)))
+
+    start_s = float(np.exp(np.median(log_x)) / 2.37)  # the median of chi2(3) is 2.37
+    bounds = [(np.log(start_s) - 20.0, np.log(start_s) + 20.0), (np.log(_MIN_DOF), np.log(MAX_DOF))]
+    best = None
+    for nu0 in (2.0, 20.0, 1000.0):
+        result = optimize.minimize(nll, np.array([np.log(start_s), np.log(nu0)]), method="L-BFGS-B", bounds=bounds)
+        if best is None or result.fun < best.fun:
+            best = result
+    log_s, log_nu = best.x
+    # A Gaussian fit has its likelihood flat in ν near the bound: compare with ν = ∞ directly.
+    gaussian_s = float(np.mean(x) / 3.0)
+    if nll(np.array([np.log(gaussian_s), np.log(MAX_DOF)])) <= best.fun:
+        return NoiseFit(gaussian_s, MAX_DOF, len(x))
+    return NoiseFit(float(np.exp(log_s)), float(min(np.exp(log_nu), MAX_DOF)), len(x))
+
+
+def calibrated_gate(d2: np.ndarray, confidence: float) -> tuple[float, NoiseFit]:
+    """The ``confidence`` quantile of a :func:`fit_noise` fit to ``d2``, and the fit."""
+    fit = fit_noise(d2)
+    return fit.quantile(confidence), fit
