@@ -11,7 +11,7 @@ statistic of 93), so a Gaussian rescaling would reject true loops there.
 So the scale and the tail are fitted together: the leave-one-out statistics ``d²`` of the loops of
 the best hypothesis are modelled as a scaled F variable, ``d² / (3 s) ~ F(3, ν)`` (the innovation of
 a 3-dof multivariate Student-t residual with scale ``s``, ``ν`` degrees of freedom; ``ν → ∞`` is
-``s χ²(3)``), by maximum likelihood, and the gate in declared units is the ``confidence`` quantile
+``s χ²(3)``), by maximum likelihood (:func:`fit_noise`), and the gate in declared units is the ``confidence`` quantile
 of that fit: :func:`calibrated_gate`. ``ilv+`` only ever tightens its configured gate with it.
 Fitted on all true loops of the oracle solution (leave-one-out statistics, ``confidence`` 0.9999):
 
@@ -29,6 +29,7 @@ calibration, and the fit on them ends at a gate of 13.4.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,7 +38,9 @@ from lcv_replay.errors import VerificationError
 
 #: ``ν`` at which the fit counts as Gaussian (``s χ²(3)``).
 MAX_DOF = 1e4
-_MIN_DOF = 0.3
+#: The ``ν`` searched by :func:`fit_noise` (log-spaced), besides ``MAX_DOF``.
+DOF_GRID = np.geomspace(0.3, 3000.0, 64)
+_EM_ITERATIONS = 200
 
 
 @dataclass(frozen=True)
@@ -56,17 +59,41 @@ class NoiseFit:
 
     def quantile(self, confidence: float) -> float:
         """The ``confidence`` quantile of ``d²`` under the fit (declared units)."""
-        from scipy import stats
+        from scipy import special
 
         if not 0.0 < confidence < 1.0:
             raise VerificationError(f"confidence {confidence} must be in (0, 1)")
         if self.dof >= MAX_DOF:
-            return float(self.scale * stats.chi2.ppf(confidence, 3))
-        return float(3.0 * self.scale * stats.f.ppf(confidence, 3, self.dof))
+            return float(self.scale * special.chdtri(3, 1.0 - confidence))
+        return float(3.0 * self.scale * special.fdtri(3, self.dof, confidence))
+
+
+def _log_likelihood(x: np.ndarray, scale: float, dof: float) -> float:
+    """``Σ log p(x)`` for ``x / (3 s) ~ F(3, ν)`` (``ν >= MAX_DOF``: ``x / s ~ χ²(3)``)."""
+    if dof >= MAX_DOF:
+        return float(np.sum(0.5 * np.log(x / scale) - x / (2.0 * scale) - np.log(scale)) - len(x) * (1.5 * np.log(2.0) + math.lgamma(1.5)))
+    const = math.lgamma((3.0 + dof) / 2.0) - math.lgamma(1.5) - math.lgamma(dof / 2.0) + 1.5 * np.log(3.0 / dof)
+    f = x / (3.0 * scale)
+    return float(np.sum(const + 0.5 * np.log(f) - (3.0 + dof) / 2.0 * np.log1p(x / (scale * dof)) - np.log(3.0 * scale)))
+
+
+def _em_scale(x: np.ndarray, dof: float) -> float:
+    """Maximum-likelihood ``s`` for a fixed ``ν``: the EM fixed point of the 3-dof Student-t scale,
+    ``s = Σ w x / (3 n)`` with ``w = (ν + 3) / (ν + x / s)``."""
+    scale = float(np.mean(x) / 3.0)
+    if dof >= MAX_DOF:
+        return scale
+    for _ in range(_EM_ITERATIONS):
+        new = float(np.mean((dof + 3.0) * x / (dof + x / scale)) / 3.0)
+        if abs(new - scale) <= 1e-10 * scale:
+            return new
+        scale = new
+    return scale
 
 
 def fit_noise(d2: np.ndarray) -> NoiseFit:
-    """Maximum-likelihood fit of ``d² / (3 s) ~ F(3, ν)`` to 3-dof innovation statistics.
+    """Maximum-likelihood fit of ``d² / (3 s) ~ F(3, ν)`` to 3-dof innovation statistics: ``s``
+    by EM for each ``ν`` of :data:`DOF_GRID` and ``MAX_DOF``, the best ``(s, ν)`` kept.
 
     Args:
         d2: ``(K,)`` statistics, ``K >= 2``; values that are not finite and positive are ignored.
@@ -74,35 +101,18 @@ def fit_noise(d2: np.ndarray) -> NoiseFit:
     Raises:
         VerificationError: fewer than two usable values.
     """
-    from scipy import optimize, stats
-
     x = np.asarray(d2, dtype=np.float64)
     x = x[np.isfinite(x) & (x > 0)]
     if len(x) < 2:
         raise VerificationError(f"a noise fit needs at least 2 positive statistics, got {len(x)}")
-    log_x = np.log(x)
-
-    def nll(params: np.ndarray) -> float:
-        log_s, log_nu = params
-        nu = np.exp(log_nu)
-        s = np.exp(log_s)
-        if nu >= MAX_DOF:
-            return float(-np.sum(stats.chi2.logpdf(x / s, 3) - log_s))
-        return float(-np.sum(stats.f.logpdf(x / (3.0 * s), 3, nu) - np.log(3.0 * s)))
-
-    start_s = float(np.exp(np.median(log_x)) / 2.37)  # the median of chi2(3) is 2.37
-    bounds = [(np.log(start_s) - 20.0, np.log(start_s) + 20.0), (np.log(_MIN_DOF), np.log(MAX_DOF))]
-    best = None
-    for nu0 in (2.0, 20.0, 1000.0):
-        result = optimize.minimize(nll, np.array([np.log(start_s), np.log(nu0)]), method="L-BFGS-B", bounds=bounds)
-        if best is None or result.fun < best.fun:
-            best = result
-    log_s, log_nu = best.x
-    # A Gaussian fit has its likelihood flat in ν near the bound: compare with ν = ∞ directly.
-    gaussian_s = float(np.mean(x) / 3.0)
-    if nll(np.array([np.log(gaussian_s), np.log(MAX_DOF)])) <= best.fun:
-        return NoiseFit(gaussian_s, MAX_DOF, len(x))
-    return NoiseFit(float(np.exp(log_s)), float(min(np.exp(log_nu), MAX_DOF)), len(x))
+    best: tuple[float, float, float] | None = None
+    for dof in (*DOF_GRID.tolist(), MAX_DOF):
+        scale = _em_scale(x, dof)
+        ll = _log_likelihood(x, scale, dof)
+        if best is None or ll > best[0]:
+            best = (ll, scale, dof)
+    assert best is not None
+    return NoiseFit(best[1], best[2], len(x))
 
 
 def calibrated_gate(d2: np.ndarray, confidence: float) -> tuple[float, NoiseFit]:

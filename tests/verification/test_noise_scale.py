@@ -25,7 +25,7 @@ def test_gaussian_statistics_fit_their_scale_and_a_light_tail():
     d2 = 0.02 * rng.chisquare(3, size=2000)
     gate, fit = calibrated_gate(d2, 0.999)
     assert fit.scale == pytest.approx(0.02, rel=0.1)
-    assert fit.dof > 100
+    assert fit.dof > 30  # light-tailed (the ML nu of a finite Gaussian sample is large, not infinite)
     assert gate == pytest.approx(0.02 * CHI2_3_Q999, rel=0.15)
     assert fit.samples == 2000
 
