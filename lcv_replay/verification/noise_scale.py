@@ -23,8 +23,8 @@ Limitation: the fit cannot tell heavy-tailed noise from false loops the best hyp
 holds; both are a few large statistics above a bulk. So the calibration keeps a clean consensus
 clean, but does not clean a contaminated one. Measured on the first 1,200 poses of Manhattan with
 200 group outliers: with the configured gate at 11.34 the first windows stay clean and the run
-ends with no false loop (gate 0.55); with 16.27 (0.999), 14 false loops get in before the first
-calibration, and the fit on them ends at a gate of 13.4.
+ends with no false loop (gate 0.55); with 16.27 (0.999), false loops get in before the first
+calibration, and the fit on them never tightens the gate (31 false loops, ATE 20 m).
 """
 
 from __future__ import annotations
