@@ -21,8 +21,9 @@ windows, pruning) and changes what the paper leaves weak:
    the hypothesis' own pose graph at its solution (GTSAM's marginals), so the test is tight where
    the hypothesis has closed loops and loose after a long open traverse. A constraint outside the
    hypothesis is plausible when its innovation passes the chi-square gate,
-   ``rᵀ (R + Σ_pred)⁻¹ r < gate`` (3 dof, 0.99, in the declared units; see 7). The consistency table itself holds the
-   cheaper question "does the hypothesis' solution satisfy it", ``rᵀ R⁻¹ r < gate``.
+   ``rᵀ (R + Σ_pred)⁻¹ r < gate`` (3 dof, 0.99, in the declared units; see 7). The consistency
+   table itself holds the cheaper question "does the hypothesis' solution satisfy it",
+   ``rᵀ R⁻¹ r < gate``.
 2. **Ranking by the truncated-least-squares cost** ``J = χ²_odometry + Σ_c min(χ²_c, gate)`` of the
    hypothesis' solution over the whole history (the objective GNC-TLS minimises), instead of the
    count of consistent constraints. Bending the odometry to satisfy a false loop, or a group of

@@ -183,3 +183,41 @@ def test_bad_input_unknown_frames_self_loops_duplicates(world, caplog):
         verifier.add_frame(50, Pose2D(float("nan"), 0, 0))
     with pytest.raises(VerificationError, match="no frames"):
         make_verifier("ilv", SMALL).result()
+
+
+def test_ilv_plus_best_hypothesis_absorbs_after_the_iterations(monkeypatch):
+    """At each window end the top hypotheses absorb first; the rank-1 hypothesis the iterations
+    produced absorbs too (once), so a loop that arrived in the window is not lost to the budget."""
+    from lcv_replay.verification.ilv import PlusModel
+    from tests.verification.ilv_synthetic import ODOM_INFORMATION, circle_world
+
+    events: list[tuple[str, int, int, bool]] = []  # (kind, window, parent id, parent was rank 1)
+    verifier = make_verifier("ilv+", SMALL, odometry_information=ODOM_INFORMATION)
+    absorb, solve = PlusModel.absorb, PlusModel.solve
+
+    def recording_absorb(self, parent, *, hypothesis_id, window):
+        events.append(("absorb", window, parent.id, verifier.ranked_ids()[0] == parent.id))
+        return absorb(self, parent, hypothesis_id=hypothesis_id, window=window)
+
+    def recording_solve(self, parent, constraint_ids, *, hypothesis_id, window, added):
+        if added is not None:  # a drawn child (absorb solves with added=None)
+            events.append(("draw", window, parent.id, False))
+        return solve(self, parent, constraint_ids, hypothesis_id=hypothesis_id, window=window, added=added)
+
+    monkeypatch.setattr(PlusModel, "absorb", recording_absorb)
+    monkeypatch.setattr(PlusModel, "solve", recording_solve)
+    steps = feed(verifier, circle_world(num_false=8, seed=2))
+    polished = 0
+    for step in steps:
+        window = [e for e in events if e[1] == step.window_index]
+        absorbs = [e for e in window if e[0] == "absorb"]
+        if not step.new_constraint_ids:
+            assert not absorbs
+            continue
+        assert len({e[2] for e in absorbs}) == len(absorbs), "each parent absorbs at most once per window"
+        kinds = [e[0] for e in window]
+        if "draw" in kinds and "absorb" in kinds[kinds.index("draw"):]:
+            last = absorbs[-1]
+            assert last[3] and window[-1] == last, "after the draws, only the rank-1 hypothesis absorbs"
+            polished += 1
+    assert polished >= 1
