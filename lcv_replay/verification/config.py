@@ -41,7 +41,7 @@ class IlvPlusConfig:
     ``ilv+`` keeps the paper's incremental multi-hypothesis structure and replaces its 10 m test by
     a Mahalanobis test under the uncertainty of each hypothesis' pose graph (GTSAM marginals),
     ranks by the truncated-least-squares cost, and refines each drawn hypothesis to its consensus
-    set (innovation tests to join, leave-one-out tests to leave). Its gate is tightened to the
+    set (innovation tests to join, leave-one-out tests to leave). Its gate is calibrated to the
     noise the best hypothesis' loops show (``calibrate_gate``; verification.noise_scale).
     """
 
@@ -52,9 +52,10 @@ class IlvPlusConfig:
     iterations_per_window: int = 3  # sec. II-D uses 10 x 10; consensus refinement needs far fewer children
     hypotheses_per_iteration: int = 5
     max_hypotheses: int = 50  # kept hypotheses (the paper's bound is 200); each costs a column test per window
-    calibrate_gate: bool = True  # tighten gate_chi2 to the noise the best hypothesis' loops show (verification.noise_scale)
+    calibrate_gate: bool = True  # calibrate the gate to the noise the best hypothesis' loops show (verification.noise_scale); gate_chi2 holds until then
     calibration_min_loops: int = 30  # loops the best hypothesis needs before its noise is fitted
     calibration_sample_loops: int = 2000  # at most this many of its loops (evenly spaced) are fitted per window (all 2,000 of Manhattan: 0.6 s)
+    calibrated_max_chi2: float = 16.27  # a heavy-tailed fit may widen the gate up to this (3 dof, 0.999), never further
     calibration_confidence: float = 0.9999  # the calibrated gate is this quantile of the fitted statistic (of 2,000 true loops, 0.2 expected beyond it)
 
     def __post_init__(self) -> None:
@@ -69,6 +70,7 @@ class IlvPlusConfig:
         require(self.max_hypotheses >= self.hypotheses_per_iteration, "verification.ilv_plus.max_hypotheses", self.max_hypotheses, "an integer >= hypotheses_per_iteration")
         require(self.calibration_min_loops >= 2, "verification.ilv_plus.calibration_min_loops", self.calibration_min_loops, "an integer >= 2")
         require(self.calibration_sample_loops >= self.calibration_min_loops, "verification.ilv_plus.calibration_sample_loops", self.calibration_sample_loops, "an integer >= calibration_min_loops")
+        require(self.calibrated_max_chi2 >= self.gate_chi2, "verification.ilv_plus.calibrated_max_chi2", self.calibrated_max_chi2, "a number >= gate_chi2")
         require(0.5 < self.calibration_confidence < 1.0, "verification.ilv_plus.calibration_confidence", self.calibration_confidence, "a number in (0.5, 1)")
 
 

@@ -51,8 +51,9 @@ windows, pruning) and changes what the paper leaves weak:
    false loop at the loosely held end of the trajectory pass a gate of 11.34). At each window end
    the leave-one-out statistics of the best hypothesis' loops are fitted as a scaled, possibly
    heavy-tailed F variable (:mod:`~lcv_replay.verification.noise_scale`) and the gate becomes
-   ``min(gate_chi2, its 0.9999 quantile)``; every test above uses the gate in force. Heavy-tailed
-   data (KITTI) keep the configured gate.
+   ``min(its 0.9999 quantile, calibrated_max_chi2)``; every test above uses the gate in force.
+   Gaussian data far tighter than declared (Manhattan) get a gate of 0.5; heavy-tailed data (KITTI)
+   get the ceiling, 16.27 (3 dof, 0.999), which admits a true loop of KITTI 05 at 12.6.
 
 The reported trajectory of ``ilv+`` is the reduced-graph solution of its accepted set, interpolated.
 """
@@ -189,16 +190,17 @@ class PlusModel:
 
     # ------------------------------------------------------------------ noise calibration
     def recalibrate(self, top: Hypothesis) -> bool:
-        """Fit the noise the best hypothesis' loops show and tighten the gate to it.
+        """Fit the noise the best hypothesis' loops show and calibrate the gate to it.
 
         The leave-one-out statistics (:meth:`leave_one_out`) of at most ``calibration_sample_loops``
         of its loops (evenly spaced in arrival order) are fitted as ``d² / (3 s) ~ F(3, ν)``
         (:func:`~lcv_replay.verification.noise_scale.fit_noise`), and the gate becomes
-        ``min(gate_chi2, calibration_confidence quantile)``: where the declared covariances are far
-        looser than the data (Vertigo Manhattan), a false loop at a loosely held part of the graph
-        no longer fits; where the errors are heavy-tailed (KITTI), the quantile lies beyond the
-        configured gate, which then stays. With fewer than ``calibration_min_loops`` loops the
-        configured gate applies. Returns whether the gate changed (the caller re-evaluates its table)."""
+        ``min(calibration_confidence quantile, calibrated_max_chi2)``: where the declared
+        covariances are far looser than the data (Vertigo Manhattan), a false loop at a loosely held
+        part of the graph no longer fits; where the errors are heavy-tailed (KITTI), the quantile
+        lies far out and the ceiling applies. The ceiling is what bounds a fit on a consensus that
+        already holds false loops (the fit cannot tell them from heavy-tailed noise). With fewer
+        than ``calibration_min_loops`` loops the configured ``gate_chi2`` applies. Returns whether the gate changed (the caller re-evaluates its table)."""
         if not self.plus.calibrate_gate or top.id == self._calibrated_on:
             return False
         self._calibrated_on = top.id
@@ -213,7 +215,7 @@ class PlusModel:
                 return False
             if np.count_nonzero(d2 > 0) >= self.plus.calibration_min_loops:
                 quantile, fit = calibrated_gate(d2, self.plus.calibration_confidence)
-                gate = min(gate, quantile)
+                gate = min(quantile, self.plus.calibrated_max_chi2)
         self.noise_fit = fit
         if gate == self.gate_chi2:
             return False

@@ -12,19 +12,22 @@ So the scale and the tail are fitted together: the leave-one-out statistics ``d�
 the best hypothesis are modelled as a scaled F variable, ``d² / (3 s) ~ F(3, ν)`` (the innovation of
 a 3-dof multivariate Student-t residual with scale ``s``, ``ν`` degrees of freedom; ``ν → ∞`` is
 ``s χ²(3)``), by maximum likelihood (:func:`fit_noise`), and the gate in declared units is the ``confidence`` quantile
-of that fit: :func:`calibrated_gate`. ``ilv+`` only ever tightens its configured gate with it.
+of that fit: :func:`calibrated_gate`. ``ilv+`` gates at ``min(quantile, 16.27)`` (its
+``calibrated_max_chi2``, χ² 3 dof 0.999), and at 11.34 until its best hypothesis holds 30 loops.
 Fitted on all true loops of the oracle solution (leave-one-out statistics, ``confidence`` 0.9999):
 
 * Manhattan: ``s`` 0.024, ``ν`` → ∞ (Gaussian), gate 0.50. True loops reach 0.37; the closest of
   1000 local false loops is 0.63 (11.34 in declared units would let 8 of them in).
-* KITTI 00 / 02 / 06: ``ν`` 2.8 / 4.0 / 2.7, quantiles 237 / 72 / 161: the configured 11.34 stays.
+* KITTI 00 / 02 / 06: ``ν`` 2.8 / 4.0 / 2.7, quantiles 237 / 72 / 161: the ceiling, 16.27,
+  applies. It admits a true loop of KITTI 05 at d² 12.6; KITTI's false loops lie beyond 400.
 
 Limitation: the fit cannot tell heavy-tailed noise from false loops the best hypothesis already
 holds; both are a few large statistics above a bulk. So the calibration keeps a clean consensus
-clean, but does not clean a contaminated one. Measured on the first 1,200 poses of Manhattan with
-200 group outliers: with the configured gate at 11.34 the first windows stay clean and the run
-ends with no false loop (gate 0.55); with 16.27 (0.999), false loops get in before the first
-calibration, and the fit on them never tightens the gate (31 false loops, ATE 20 m).
+clean, but does not clean a contaminated one, which is why the gate before the first fit stays at
+11.34. Measured on the first 1,200 poses of Manhattan with 200 group outliers: with 11.34 the first
+windows stay clean and the run ends with no false loop (gate 0.55); starting at 16.27 instead,
+false loops get in before the first calibration, and the fit on them never tightens the gate
+(31 false loops, ATE 20 m).
 """
 
 from __future__ import annotations
