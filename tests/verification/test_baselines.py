@@ -16,6 +16,7 @@ from lcv_replay.verification.config import BaselineConfig, VerificationConfig
 from lcv_replay.verification.registry import available_methods, make_verifier
 from tests.conftest import shared_path
 from tests.verification.ilv_synthetic import ODOM_INFORMATION, circle_world
+from tests.verification.test_incremental import candidates_by_query, feed_frames
 
 BASELINES = ("none", "ir-only", "dcs", "gm", "cauchy", "gnc", "oracle")
 
@@ -25,16 +26,7 @@ def _config(solve_every="end", window_frames=100, **baselines) -> VerificationCo
 
 
 def _feed(verifier, odom, candidates):
-    by_query: dict[int, list[LoopCandidate]] = {}
-    for c in candidates:
-        by_query.setdefault(c.query_frame, []).append(c)
-    steps = []
-    for k, pose in enumerate(odom):
-        verifier.add_frame(k, Pose2D(*pose))
-        verifier.add_candidates(by_query.get(k, []))
-        step = verifier.step()
-        if step is not None:
-            steps.append(step)
+    steps = feed_frames(verifier, odom, candidates_by_query(candidates))
     return verifier.result(), steps
 
 

@@ -14,7 +14,7 @@ from lcv_replay.verification.pose_graph import se2_between
 from lcv_replay.verification.registry import available_methods, make_verifier
 from tests.conftest import shared_path
 from tests.verification.ilv_synthetic import ODOM_INFORMATION, circle_world
-from tests.verification.test_incremental import SMALL, feed
+from tests.verification.test_incremental import SMALL, candidates_by_query, feed, feed_frames
 
 #: A measured loop (relative pose from geometric verification): sigma 10 cm, 10 cm, 0.01 rad.
 MEASURED_INFORMATION = (100.0, 0.0, 0.0, 100.0, 0.0, 10000.0)
@@ -168,14 +168,8 @@ def test_robustslam_kitti_06_alpha_050():
     odom = graph.odometry_poses()
     truth_pairs = load_true_loops(folder / "kitti_06_alpha_0.50_GT_LC.txt", len(odom))
     ground_truth = load_ground_truth(folder / "kitti_06_GT.g2o", len(odom))
-    by_query: dict[int, list[LoopCandidate]] = {}
-    for c in graph.loop_candidates():
-        by_query.setdefault(c.query_frame, []).append(c)
     verifier = make_verifier("ilv+", VerificationConfig(), odometry_information=graph.odometry_information_matrix())
-    for k, pose in enumerate(odom):
-        verifier.add_frame(k, Pose2D(*pose))
-        verifier.add_candidates(by_query.get(k, []))
-        verifier.step()
+    feed_frames(verifier, odom, candidates_by_query(graph.loop_candidates()))
     result = verifier.result()
     accepted = {result.constraints[i].candidate.pair for i in result.accepted_constraint_ids}
     true = {c.candidate.pair for c in result.constraints} & truth_pairs

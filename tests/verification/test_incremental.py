@@ -23,21 +23,32 @@ SMALL = dataclasses.replace(
 )
 
 
-def feed(verifier, world, *, extra: dict[int, list[LoopCandidate]] | None = None):
-    """Feed ``world`` frame by frame; returns the steps."""
+def candidates_by_query(candidates) -> dict[int, list[LoopCandidate]]:
+    """Candidates keyed by their query frame (the frame at which they arrive)."""
     by_query: dict[int, list[LoopCandidate]] = {}
-    for c in world.candidates:
+    for c in candidates:
         by_query.setdefault(c.query_frame, []).append(c)
-    for k, extra_list in (extra or {}).items():
-        by_query.setdefault(k, []).extend(extra_list)
+    return by_query
+
+
+def feed_frames(verifier, odom, by_frame: dict[int, list[LoopCandidate]]):
+    """Feed odometry poses frame by frame, with ``by_frame[k]`` added at frame ``k``; returns the steps."""
     steps = []
-    for k, pose in enumerate(world.odom):
+    for k, pose in enumerate(odom):
         verifier.add_frame(k, Pose2D(*pose))
-        verifier.add_candidates(by_query.get(k, []))
+        verifier.add_candidates(by_frame.get(k, []))
         step = verifier.step()
         if step is not None:
             steps.append(step)
     return steps
+
+
+def feed(verifier, world, *, extra: dict[int, list[LoopCandidate]] | None = None):
+    """Feed ``world`` frame by frame; returns the steps."""
+    by_query = candidates_by_query(world.candidates)
+    for k, extra_list in (extra or {}).items():
+        by_query.setdefault(k, []).extend(extra_list)
+    return feed_frames(verifier, world.odom, by_query)
 
 
 @pytest.fixture(scope="module")

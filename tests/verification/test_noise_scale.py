@@ -15,7 +15,7 @@ from lcv_replay.verification.pose_graph import se2_between
 from lcv_replay.verification.registry import make_verifier
 from tests.conftest import shared_path
 from tests.verification.ilv_synthetic import circle_world
-from tests.verification.test_incremental import SMALL, feed
+from tests.verification.test_incremental import SMALL, candidates_by_query, feed, feed_frames
 
 CHI2_3_Q999 = 16.266  # chi-square quantile, 3 dof, 0.999
 
@@ -139,16 +139,10 @@ def _run_manhattan(manhattan_1200, calibrate: bool):
     from lcv_replay.evaluation.metrics import absolute_trajectory_error
 
     graph, odom, truth, real, false = manhattan_1200
-    by_query: dict[int, list[LoopCandidate]] = {}
-    for c in real + list(false):
-        by_query.setdefault(c.query_frame, []).append(c)
     config = VerificationConfig()
     config = dataclasses.replace(config, ilv_plus=dataclasses.replace(config.ilv_plus, calibrate_gate=calibrate))
     verifier = make_verifier("ilv+", config, odometry_information=graph.odometry_information_matrix())
-    for k, pose in enumerate(odom):
-        verifier.add_frame(k, Pose2D(*pose))
-        verifier.add_candidates(by_query.get(k, []))
-        verifier.step()
+    feed_frames(verifier, odom, candidates_by_query(real + list(false)))
     result = verifier.result()
     accepted = {result.constraints[i].candidate.pair for i in result.accepted_constraint_ids}
     return accepted, {c.pair for c in real}, absolute_trajectory_error(result.trajectory, truth).rmse_m, result
