@@ -64,9 +64,10 @@ def test_every_shared_graph_loads(path: Path) -> None:
 def test_shared_graph_list_is_complete() -> None:
     shared_path("robustslam_kitti")
     shared_path("vertigo")
-    # 5 sequences x (5 alphas + odom + GT); Manhattan (2 graphs + 2 ground-truth files) and Intel.
+    # 5 sequences x (5 alphas + odom + GT); Manhattan (2 graphs + 2 ground-truth files), Intel,
+    # ring and ringCity (graph + ground truth each) and city10000.
     assert len(ROBUSTSLAM_GRAPHS) == 35
-    assert len(VERTIGO_GRAPHS) == 5
+    assert len(VERTIGO_GRAPHS) == 10
 
 
 @pytest.mark.parametrize("path", [p for p in ROBUSTSLAM_GRAPHS if "_alpha_" in p.name], ids=lambda p: p.name)
