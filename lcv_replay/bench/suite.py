@@ -80,14 +80,26 @@ class BuiltLog:
     build_s: float
 
 
-def _recorder_inputs(case: SuiteCase, data_dir: Path):
+def _recorder_inputs(case: SuiteCase, data_dir: Path, workdir: Path | None = None):
+    """``(graph path, G2oOptions)`` of a case; a generated world is written into
+    ``workdir/worlds`` first (when ``workdir`` is given; else only its paths are named)."""
     from recorders.g2o import G2oOptions
 
-    graph = case.resolve(data_dir, case.graph)
-    ground_truth = case.resolve(data_dir, case.ground_truth)
-    true_loops = case.resolve(data_dir, case.true_loops)
+    if case.world is not None:
+        folder = (workdir or default_workdir()) / "worlds"
+        if workdir is not None:
+            from lcv_replay.bench.worlds import generate_world, write_world
+
+            graph, ground_truth = write_world(generate_world(case.world), folder)
+        else:
+            graph, ground_truth = folder / f"{case.world.name}.g2o", folder / f"{case.world.name}_gt.g2o"
+        true_loops = None
+    else:
+        graph = case.resolve(data_dir, case.graph)
+        ground_truth = case.resolve(data_dir, case.ground_truth)
+        true_loops = case.resolve(data_dir, case.true_loops)
     for what, path in (("graph", graph), ("ground truth", ground_truth), ("true-loop labels", true_loops)):
-        if path is not None and not path.is_file():
+        if path is not None and not path.is_file() and case.world is None:
             raise RecorderError(
                 f"suite case '{case.name}': {what} file not found",
                 path=path,
@@ -102,20 +114,28 @@ def _recorder_inputs(case: SuiteCase, data_dir: Path):
         group_size=case.group_size,
         seed=case.seed,
         loop_measurements=case.loop_measurements,
+        original_loops_true=True if case.world is not None else None,  # a world's revisits are all true
+        dataset=f"world/{case.world.name}" if case.world is not None else None,
     )
     return graph, options
 
 
 def case_log_name(case: SuiteCase, data_dir: Path) -> str:
-    """``<case>-<hash>.mcap``: the hash covers the sources (size, mtime) and recorder options."""
+    """``<case>-<hash>.mcap``: the hash covers the sources (size, mtime) and recorder options, or
+    a generated world's spec and generator version."""
     from lcv_replay import __version__
+    from lcv_replay.bench.worlds import WORLD_VERSION
     from lcv_replay.log.format import FORMAT_VERSION
 
-    graph, options = _recorder_inputs(case, data_dir)
-    sources = [p for p in (graph, options.ground_truth, options.true_loops) if p is not None]
+    if case.world is not None:
+        sources: list = [("world", WORLD_VERSION)]
+    else:
+        graph, options = _recorder_inputs(case, data_dir)
+        paths = [p for p in (graph, options.ground_truth, options.true_loops) if p is not None]
+        sources = [(str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in paths]
     key = {
         "case": asdict(case),
-        "sources": [(str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in sources],
+        "sources": sources,
         "format": FORMAT_VERSION,
         "version": __version__,
     }
@@ -137,8 +157,8 @@ def build_case_log(case: SuiteCase, data_dir: Path, workdir: Path) -> BuiltLog:
             return BuiltLog(case.name, path, True, 0.0)
         except LcvError as exc:
             log.warning("rebuilding %s: %s", path, exc.format())
-    graph, options = _recorder_inputs(case, data_dir)
     started = time.perf_counter()
+    graph, options = _recorder_inputs(case, data_dir, workdir)
     record_g2o(graph, path, options, force=True)
     return BuiltLog(case.name, path, False, time.perf_counter() - started)
 
