@@ -40,9 +40,10 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from lcv_replay import se2
 from lcv_replay.errors import VerificationError
 from lcv_replay.records import LoopCandidate, Pose2D
-from lcv_replay.verification import pose_graph
+from lcv_replay.verification import measurements, pose_graph
 from lcv_replay.verification.base import Constraint, HypothesisSummary, VerificationResult, VerifierStep
 from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.registry import register
@@ -101,7 +102,7 @@ class ConstraintHistory:
                 self.stats.duplicates += 1
                 continue
             constraint = Constraint(len(self.constraints), cand, arrival)
-            pose_graph.loop_measurement(constraint, self.loop_default_information)  # validates Ω
+            measurements.loop_measurement(constraint, self.loop_default_information)  # validates Ω
             self._pairs.add(cand.pair)
             self.constraints.append(constraint)
             new.append(constraint)
@@ -162,8 +163,8 @@ def default_informations(config: VerificationConfig, odometry_information: np.nd
     """
     odom = config.odometry_information_matrix() if odometry_information is None else odometry_information
     return (
-        pose_graph.as_information_matrix(odom, what="odometry"),
-        pose_graph.as_information_matrix(config.loop_information_matrix(), what="default loop constraint"),
+        measurements.as_information_matrix(odom, what="odometry"),
+        measurements.as_information_matrix(config.loop_information_matrix(), what="default loop constraint"),
     )
 
 
@@ -243,7 +244,7 @@ class BatchVerifier:
         odom = self.odometry
         if self._estimate is None:
             return odom.copy()
-        return pose_graph.extend_by_odometry(self._estimate, odom)
+        return measurements.extend_by_odometry(self._estimate, odom)
 
     def _consistent(self, poses: np.ndarray) -> np.ndarray:
         """``(C,)`` bool: the paper's T_p test (sec. II-A) of every constraint against ``poses``."""
@@ -305,8 +306,8 @@ def _chi2_below(poses: np.ndarray, constraints: Sequence[Constraint], loop_infor
     """``(C,)`` bool: whitened chi-square of each loop at ``poses`` below ``limit``."""
     if not constraints:
         return np.zeros(0, dtype=bool)
-    match_idx, query_idx, measured, info = pose_graph.loop_arrays(constraints, loop_information)
-    return pose_graph.between_chi2(poses, match_idx, query_idx, measured, info) < limit
+    match_idx, query_idx, measured, info = measurements.loop_arrays(constraints, loop_information)
+    return se2.between_chi2(poses, match_idx, query_idx, measured, info) < limit
 
 
 class OdometryOnlyVerifier(BatchVerifier):
