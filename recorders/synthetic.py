@@ -25,8 +25,7 @@ from typing import Literal
 
 import numpy as np
 
-from lcv_replay.config import require
-from lcv_replay.errors import ConfigError
+from lcv_replay.errors import ConfigError, require
 from lcv_replay.fileio import check_output_path
 from lcv_replay.records import Pose2D
 from lcv_replay.se2 import compose_chain, relative_steps

@@ -69,7 +69,7 @@ import numpy as np
 from lcv_replay import se2
 from lcv_replay.verification import pose_graph
 from lcv_replay.verification.base import Constraint
-from lcv_replay.verification.baselines import ConstraintHistory
+from lcv_replay.verification.base import ConstraintHistory
 from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.consistency import mahalanobis_d2, position_consistent
 from lcv_replay.verification.hypotheses import Hypothesis

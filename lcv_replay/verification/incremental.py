@@ -44,7 +44,7 @@ import numpy as np
 from lcv_replay.errors import VerificationError
 from lcv_replay.records import LoopCandidate, Pose2D
 from lcv_replay.verification.base import Constraint, HypothesisSummary, VerificationResult, VerifierStep
-from lcv_replay.verification.baselines import ConstraintHistory, checked_frame, default_informations
+from lcv_replay.verification.base import ConstraintHistory, checked_frame, default_informations
 from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.consistency import ConsistencyTable, position_consistent
 from lcv_replay.verification.hypotheses import (

@@ -11,7 +11,8 @@ from lcv_replay.errors import VerificationError
 from lcv_replay.evaluation.metrics import absolute_trajectory_error, detection_metrics
 from lcv_replay.evaluation.truth import loop_truth
 from lcv_replay.records import LoopCandidate, Pose2D
-from lcv_replay.verification.baselines import IR_ONLY_COUNTS, ConstraintHistory, needs_truth
+from lcv_replay.verification.base import ConstraintHistory
+from lcv_replay.verification.baselines import IR_ONLY_COUNTS, needs_truth
 from lcv_replay.verification.config import BaselineConfig, VerificationConfig
 from lcv_replay.verification.registry import available_methods, make_verifier
 from tests.conftest import shared_path
