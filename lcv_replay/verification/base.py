@@ -132,6 +132,26 @@ class VerificationResult:
     last_step: VerifierStep | None = None
 
 
+def result_step(result: VerificationResult, last: VerifierStep | None) -> VerifierStep:
+    """A final :class:`VerifierStep` that carries ``result`` (for a verifier whose last step does
+    not: a batch method that solves in ``result()``, or a last partial window)."""
+    frame_index = len(result.trajectory) - 1
+    window = (last.window_index + 1) if last is not None else 0
+    top_id = result.ranking[0].id if result.ranking else -1
+    return VerifierStep(
+        frame_index=frame_index,
+        window_index=window,
+        new_constraint_ids=(),
+        new_hypotheses=(),
+        generation_edges=(),
+        ranking=tuple(result.ranking),
+        accepted_constraint_ids=tuple(result.accepted_constraint_ids),
+        trajectories={top_id: np.asarray(result.trajectory)},
+        consistency=last.consistency if last is not None else np.zeros((0, 0), dtype=bool),
+        timings_s={},
+    )
+
+
 class Verifier(Protocol):
     """Incremental loop-closure verifier (``ilv``, ``ilv+`` and the baselines)."""
 
