@@ -35,7 +35,7 @@ import numpy as np
 from lcv_replay.config import ReplayConfig, to_dict
 from lcv_replay.errors import ConfigError, ReplayError
 from lcv_replay.evaluation.metrics import ate_rmse_m, detection_metrics, top_trajectory
-from lcv_replay.evaluation.truth import ConstraintTruth, choose_truth_source
+from lcv_replay.evaluation.truth import ConstraintTruth, choose_truth_source, provide_truth
 from lcv_replay.pacing import Clock, Pacer, PacingReport, SystemClock
 from lcv_replay.records import Frame, FrameWindow, LoopCandidate
 from lcv_replay.sinks.base import FrameUpdate, RunStart, RunSummary, Sink, SinkGroup, StepMetrics, StepUpdate
@@ -237,6 +237,7 @@ def _prepare(options: ReplayOptions) -> _Setup:
     true_pairs = window.pairs(reader.true_loops()) if info.has_labels else None
     truth_source = choose_truth_source(source, has_labels=info.has_labels, has_ground_truth=ground_truth is not None)
     truth = ConstraintTruth(truth_source, true_pairs, ground_truth, config.verification.consistency_radius_m)
+    provide_truth(verifier, truth, method=config.verification.method, path=path)  # the oracle, or refused here
     stamps = window.rows(reader.frame_stamps_ns)
     start = RunStart(
         log_path=path, method=config.verification.method, constraint_source=source, rate=options.rate,

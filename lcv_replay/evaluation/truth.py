@@ -17,12 +17,14 @@ and arrays; nothing here reads a file.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from enum import Enum
 from typing import TYPE_CHECKING, Iterable, Sequence
 
 import numpy as np
 
 from lcv_replay.errors import VerificationError
+from lcv_replay.verification.base import needs_truth
 
 if TYPE_CHECKING:  # pragma: no cover
     from lcv_replay.verification.base import Constraint
@@ -197,3 +199,22 @@ class ConstraintTruth:
         """The flags so far (or of the first ``count`` constraints) as a :class:`LoopTruth`."""
         flags = tuple(self.flags if count is None else self.flags[:count])
         return LoopTruth(self.source, flags, self._radius_m if self.source is TruthSource.GROUND_TRUTH else None)
+
+
+def provide_truth(verifier: object, truth: ConstraintTruth, *, method: str, path: Path | None = None) -> None:
+    """Give a verifier that needs the truth (:class:`~lcv_replay.verification.base.NeedsTruth`,
+    the oracle) the truth that judges the run; nothing for any other verifier.
+
+    Raises:
+        VerificationError: the verifier needs the truth but the run has none (no labels, no
+            ground truth); raised before the first frame.
+    """
+    if not needs_truth(verifier):
+        return
+    if truth.source is TruthSource.NONE:
+        raise VerificationError(
+            f"method '{method}' needs the log's true loops, but the log has neither labels nor ground truth",
+            path=path,
+            fix="record the log with --true-loops or --ground-truth, or choose another method",
+        )
+    verifier.set_truth(truth.is_true)  # type: ignore[attr-defined]

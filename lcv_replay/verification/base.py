@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol, Sequence
+from typing import TYPE_CHECKING, Callable, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
@@ -169,6 +169,28 @@ class Verifier(Protocol):
 
     def result(self) -> VerificationResult:
         """Finish (process the last partial window) and return the final result."""
+
+
+#: Whether the loop ``(query_frame, match_frame)`` is known to be true.
+PairTruth = Callable[[int, int], bool]
+
+
+@runtime_checkable
+class NeedsTruth(Protocol):
+    """A verifier capability: it must be told which loops are true before its first frame.
+
+    The ``oracle`` (only the true loops: the ATE reference) has it. The replay and ``bench verify``
+    give it the truth that judges the run (:func:`lcv_replay.evaluation.truth.provide_truth`), and
+    refuse the method up front where the log has neither labels nor ground truth.
+    """
+
+    def set_truth(self, is_true: PairTruth) -> None:
+        """Which ``(query_frame, match_frame)`` pairs are true (frame indices as fed to the verifier)."""
+
+
+def needs_truth(verifier: object) -> bool:
+    """Whether ``verifier`` has the :class:`NeedsTruth` capability."""
+    return isinstance(verifier, NeedsTruth)
 
 
 # ----------------------------------------------------------------------------------------------
