@@ -189,3 +189,14 @@ def test_stop_token_summarises_the_last_completed_window(square, tmp_path):
     assert max(f for f in tables[bp.CONSTRAINTS_ACCEPTED].column("frame").to_pylist() if f is not None) == 199  # the last completed window
     assert sum(ConstraintState(c).accepted for c in last_verdicts(tables).values()) == summary.accepted
     assert math.isfinite(summary.wall_time_s)
+
+
+def test_the_oracle_replays_with_the_truth_that_judges_the_run(square, tmp_path):
+    """``--method oracle`` in a replay is given the log's labels (the NeedsTruth capability), as in
+    ``bench verify``: it accepts exactly the labelled true loops."""
+    summary, _, _ = _run(square["log"], tmp_path, "oracle", square["config"], method="oracle")
+    route = square["route"]
+    assert summary.method == "oracle" and summary.truth_source == "labels"
+    assert (summary.accepted, summary.true_positives, summary.false_positives, summary.false_negatives) == (
+        len(route.true_pairs), len(route.true_pairs), 0, 0)
+    assert summary.precision == summary.recall == 1.0
