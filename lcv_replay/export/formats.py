@@ -111,13 +111,13 @@ def g2o_text(vertices: np.ndarray, odometry: np.ndarray, odometry_information: n
         odometry_information: ``(3, 3)`` information of one odometry step.
         loops: the loops to write as edges ``match -> query``.
     """
-    from lcv_replay.verification.pose_graph import se2_between
+    from lcv_replay import se2
 
     odometry = np.asarray(odometry, dtype=np.float64).reshape(-1, 3)
     vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     info = " ".join(f"{v:.12g}" for v in _upper6(odometry_information))
     lines = [f"VERTEX_SE2 {i} {x:.12g} {y:.12g} {t:.12g}" for i, (x, y, t) in enumerate(vertices)]
-    steps = se2_between(odometry[:-1], odometry[1:]) if len(odometry) > 1 else np.zeros((0, 3))
+    steps = se2.relative_steps(odometry) if len(odometry) > 1 else np.zeros((0, 3))
     lines += [f"EDGE_SE2 {k} {k + 1} {x:.12g} {y:.12g} {t:.12g} {info}" for k, (x, y, t) in enumerate(steps)]
     for loop in loops:
         x, y, t = loop.measurement

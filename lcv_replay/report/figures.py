@@ -50,7 +50,8 @@ def display_frame(record: RunRecord) -> tuple[np.ndarray, np.ndarray, np.ndarray
     the ATE, the odometry anchored at the first ground-truth pose (so that its drift shows);
     without, in the odometry frame.
     """
-    from lcv_replay.evaluation.metrics import align_se2, transform_xy
+    from lcv_replay import se2
+    from lcv_replay.evaluation.metrics import align_se2
     from lcv_replay.sinks.layout import anchor_to_first
 
     estimate = record.estimate if record.estimate is not None else record.odometry
@@ -63,7 +64,7 @@ def display_frame(record: RunRecord) -> tuple[np.ndarray, np.ndarray, np.ndarray
     if known.sum() < 2:
         return est, odo, None
     T = align_se2(est[known], gt[known, :2])
-    est = transform_xy(T, est)
+    est = se2.transform_points(T, est)
     first = int(np.flatnonzero(known)[0])
     odo = anchor_to_first(record.odometry[first:], gt[first])[:, :2]
     odo = np.vstack([np.full((first, 2), np.nan), odo])

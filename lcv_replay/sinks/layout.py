@@ -6,6 +6,7 @@ directly. Poses are ``(N, 3)`` float64 ``[x_m, y_m, yaw_rad]``; positions ``(N, 
 
 from __future__ import annotations
 
+import math
 from enum import IntEnum
 from typing import Any, Mapping, Sequence
 

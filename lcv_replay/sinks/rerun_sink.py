@@ -497,7 +497,7 @@ class RerunSink(BaseSink):
         # Constraints on that map, one entity per verdict (drawn in DRAW_ORDER: the verdict on top).
         self._judged = len(constraints)
         states = constraint_states(len(constraints), step.accepted_constraint_ids, truth)
-        ambiguous = {int(i) for i in getattr(step, "ambiguous_constraint_ids", ()) or ()}
+        ambiguous = {int(i) for i in step.ambiguous_constraint_ids}
         self._log_constraints(constraints, states, ambiguous)
         rec.log(bp.CONSTRAINTS_PENDING, rr.Clear(recursive=False))
 
@@ -542,9 +542,8 @@ class RerunSink(BaseSink):
         }
         is_ambiguous = np.zeros(len(states), dtype=bool)
         is_ambiguous[[i for i in ambiguous if 0 <= i < len(states)]] = True
-        if ambiguous:
-            groups = {path: mask & ~is_ambiguous for path, mask in groups.items()}
-            groups[bp.CONSTRAINTS_AMBIGUOUS] = is_ambiguous
+        groups = {path: mask & ~is_ambiguous for path, mask in groups.items()}
+        groups[bp.CONSTRAINTS_AMBIGUOUS] = is_ambiguous  # logged (empty) at every step: a flag can be lifted
         for path, mask in groups.items():
             ids = np.flatnonzero(mask)
             if path == bp.CONSTRAINTS_REJECTED and len(ids) > REJECTED_MAX_DRAWN:

@@ -576,7 +576,7 @@ class RunRecorder(BaseSink):
         stamps = np.asarray(self._stamps, dtype=np.int64)
         step = self._last.step if self._last is not None else None
         from lcv_replay.evaluation.metrics import top_trajectory
-        from lcv_replay.verification.pose_graph import extend_by_odometry
+        from lcv_replay.verification.measurements import extend_by_odometry
 
         estimate = None
         top_trajectories: dict[int, np.ndarray] = {}
@@ -595,7 +595,7 @@ class RunRecorder(BaseSink):
             ground_truth[: len(gt)] = gt
         config = dict(start.config)
         loop_info, odom_info = _default_informations(config, start.log_metadata)
-        ambiguous = {int(i) for i in getattr(step, "ambiguous_constraint_ids", ()) or ()} if step is not None else set()
+        ambiguous = {int(i) for i in step.ambiguous_constraint_ids} if step is not None else set()
         loops = self._loops(stamps, estimate, loop_info, step, ambiguous, summary)
         tree_ids = ancestry(self._tree, [h.id for h in step.ranking[: self.top_hypotheses]]) if step is not None else []
         return RunRecord(
@@ -611,7 +611,8 @@ class RunRecorder(BaseSink):
         )
 
     def _loops(self, stamps, estimate, loop_info, step: VerifierStep | None, ambiguous: set[int], summary: RunSummary) -> tuple[LoopRecord, ...]:
-        from lcv_replay.verification.pose_graph import between_chi2, loop_arrays
+        from lcv_replay.se2 import between_chi2
+        from lcv_replay.verification.measurements import loop_arrays
 
         constraints = self._constraints
         if not constraints:

@@ -184,3 +184,20 @@ def test_serve_binds_to_loopback_only_and_tees_with_the_file(tmp_path):
         sink.close()  # without on_finish: an aborted run; the server must go away all the same
     assert not _accepts("127.0.0.1", grpc) and not _accepts("127.0.0.1", web)
     assert not out.exists()
+
+
+def test_a_constraint_flagged_ambiguous_gets_its_own_entity(tmp_path):
+    import dataclasses
+
+    class FlagLast(RerunSink):
+        def on_step(self, update):
+            if update.final:
+                update = dataclasses.replace(update, step=dataclasses.replace(update.step, ambiguous_constraint_ids=(1,)))
+            super().on_step(update)
+
+    out = tmp_path / "ambiguous.rrd"
+    script(FlagLast(RerunConfig(image_every=0), RerunOutputs(save=out)), tmp_path)
+    tables = read_rrd(out)
+    assert by_frame(tables[bp.CONSTRAINTS_AMBIGUOUS], "constraint_id") == {19: [], 29: [1]}
+    assert by_frame(tables[bp.CONSTRAINTS_REJECTED], "constraint_id")[29] == []
+    assert "1 ambiguous (flagged)" in last_row(tables[bp.LEGEND], "TextDocument:text")[0]
