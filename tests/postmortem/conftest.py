@@ -41,6 +41,16 @@ def replay_with_outputs(folder: Path, log: Path, *extra: str, config: Path | Non
     return Run(folder, log, rrd, export, report, json.loads(js.read_text()), result.output, config)
 
 
+def one_error(args: list[str], *needles: str) -> None:
+    """``lcv-replay ARGS`` ends in exactly one ``error:`` line holding ``needles``, exit code 2."""
+    result = CliRunner().invoke(app, args)
+    lines = [line for line in result.output.splitlines() if line.startswith("error:")]
+    assert result.exit_code == 2, result.output
+    assert len(lines) == 1 and "Traceback" not in result.output, result.output
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
 @pytest.fixture(scope="session")
 def square_run(tmp_path_factory) -> Run:
     """The synthetic square route (real g2o recorder, labels and ground truth) with the paper's ``ilv``."""

@@ -13,6 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 from lcv_replay.cli import app
+from tests.postmortem.conftest import one_error
 from lcv_replay.export.formats import LOOP_COLUMNS, stamp_seconds
 from lcv_replay.export.sink import EXPORT_FILES
 from lcv_replay.report.rrd import read_run_record
@@ -129,24 +130,15 @@ def test_kitti00_export_agrees_with_evo_on_real_data(kitti_run):
     assert len(rows) == 337 and sum(r["state"] == "accepted" for r in rows) == kitti_run.summary["accepted"]
 
 
-def _one_error(args: list[str], *needles: str) -> None:
-    result = CliRunner().invoke(app, args)
-    lines = [line for line in result.output.splitlines() if line.startswith("error:")]
-    assert result.exit_code == 2, result.output
-    assert len(lines) == 1 and "Traceback" not in result.output, result.output
-    for needle in needles:
-        assert needle in lines[0], lines[0]
-
-
 def test_export_into_a_file_or_an_unwritable_folder_is_refused_before_any_work(square_run, tmp_path):
     a_file = tmp_path / "taken"
     a_file.write_text("x")
-    _one_error([str(square_run.log), "--export", str(a_file), "--quiet", "--no-rerun"], "taken", "needs a folder")
-    _one_error([str(square_run.log), "--export", str(tmp_path / "no" / "such" / "dir"), "--quiet", "--no-rerun"],
+    one_error([str(square_run.log), "--export", str(a_file), "--quiet", "--no-rerun"], "taken", "needs a folder")
+    one_error([str(square_run.log), "--export", str(tmp_path / "no" / "such" / "dir"), "--quiet", "--no-rerun"],
                "parent does not exist")
-    _one_error([str(square_run.log), "--export", "/proc/lcv-replay-export", "--quiet", "--no-rerun"], "/proc/lcv-replay-export")
+    one_error([str(square_run.log), "--export", "/proc/lcv-replay-export", "--quiet", "--no-rerun"], "/proc/lcv-replay-export")
     if os.geteuid() != 0:  # root writes anywhere; the /proc case above covers it
         locked = tmp_path / "locked"
         locked.mkdir(mode=0o500)
-        _one_error([str(square_run.log), "--export", str(locked), "--quiet", "--no-rerun"], "not writable")
-    _one_error(["demo", "--export", str(a_file), "--quiet"], "needs a folder")
+        one_error([str(square_run.log), "--export", str(locked), "--quiet", "--no-rerun"], "not writable")
+    one_error(["demo", "--export", str(a_file), "--quiet"], "needs a folder")

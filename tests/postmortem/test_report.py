@@ -13,6 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 from lcv_replay.cli import app
+from tests.postmortem.conftest import one_error
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
 
@@ -63,23 +64,14 @@ def test_chromium_renders_the_report_with_its_figures(square_run, tmp_path):
     assert pixels_like((74, 127, 212)) > 100  # recall, window points
 
 
-def _one_error(args: list[str], *needles: str) -> None:
-    result = CliRunner().invoke(app, args)
-    lines = [line for line in result.output.splitlines() if line.startswith("error:")]
-    assert result.exit_code == 2, result.output
-    assert len(lines) == 1 and "Traceback" not in result.output, result.output
-    for needle in needles:
-        assert needle in lines[0], lines[0]
-
-
 def test_report_on_bad_recordings_is_one_error_line(square_run, tmp_path):
     text = tmp_path / "notes.rrd"
     text.write_text("not a recording\n")
-    _one_error(["report", str(text), "-o", str(tmp_path / "a.html")], "notes.rrd", "not a readable Rerun recording")
+    one_error(["report", str(text), "-o", str(tmp_path / "a.html")], "notes.rrd", "not a readable Rerun recording")
     truncated = tmp_path / "truncated.rrd"
     data = square_run.rrd.read_bytes()
     truncated.write_bytes(data[: len(data) // 2])
-    _one_error(["report", str(truncated), "-o", str(tmp_path / "b.html")], "truncated.rrd")
+    one_error(["report", str(truncated), "-o", str(tmp_path / "b.html")], "truncated.rrd")
     import rerun as rr
 
     foreign = tmp_path / "foreign.rrd"
@@ -88,15 +80,15 @@ def test_report_on_bad_recordings_is_one_error_line(square_run, tmp_path):
     rec.log("/points", rr.Points2D([[0.0, 1.0]]))
     rec.flush()
     rec.disconnect()
-    _one_error(["report", str(foreign), "-o", str(tmp_path / "c.html")], "foreign.rrd", "not an lcv-replay")
-    _one_error(["report", str(tmp_path / "missing.rrd")], "missing.rrd", "not found")
+    one_error(["report", str(foreign), "-o", str(tmp_path / "c.html")], "foreign.rrd", "not an lcv-replay")
+    one_error(["report", str(tmp_path / "missing.rrd")], "missing.rrd", "not found")
     assert not list(tmp_path.glob("*.html"))  # nothing half-written
 
 
 def test_report_refuses_to_overwrite_without_force(square_run, tmp_path):
     out = tmp_path / "r.html"
     out.write_text("keep me")
-    _one_error(["report", str(square_run.rrd), "-o", str(out)], "already exists", "--force")
+    one_error(["report", str(square_run.rrd), "-o", str(out)], "already exists", "--force")
     assert out.read_text() == "keep me"
     assert CliRunner().invoke(app, ["report", str(square_run.rrd), "-o", str(out), "--force"]).exit_code == 0
 
