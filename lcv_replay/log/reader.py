@@ -286,7 +286,7 @@ class LogReader:
                     f"topic {channel.topic} has unknown schema {schema_name!r} "
                     f"(encoding {channel.message_encoding!r}); expected {' or '.join(names)} ({encoding})",
                     path=self.path,
-                    fix="convert the file with 'lcv-replay record' (e.g. 'lcv-replay record ros2' for ROS 2 bags)",
+                    fix="convert the file with 'lcv-replay record' (e.g. 'lcv-replay record rosbag' for ROS 1 and ROS 2 bags, or replay the bag directly)",
                 )
 
     def _check_monotonic(self) -> None:
