@@ -76,6 +76,10 @@ class ReplayOptions:
         start_offset_s, duration_s: the time range to replay (``None`` duration: to the end).
         seed: overrides the retrieval and verification seeds when given.
         recover: read a truncated log's complete chunks.
+        open_reader: how to open the log, ``open_reader(path, recover=...)``; ``None`` is
+            :func:`lcv_replay.log.reader.open_log`. A reader mode such as the follower of a log
+            still being written (:func:`lcv_replay.log.follow.follow_log`) plugs in here; the
+            replay cannot tell the difference.
     """
 
     log_path: Path
@@ -87,6 +91,7 @@ class ReplayOptions:
     duration_s: float | None = None
     seed: int | None = None
     recover: bool = False
+    open_reader: Any = None
 
     def __post_init__(self) -> None:
         if self.rate is not None:
@@ -318,14 +323,36 @@ def rebase_frame(frame: Frame, first: int) -> Frame:
 
 # --------------------------------------------------------------------------------------- truth
 class _Truth:
-    """Truth of the constraint history, grown as constraints arrive (labels or ground truth)."""
+    """Truth of the constraint history, grown as constraints arrive (labels or ground truth).
 
-    def __init__(self, source: TruthSource, true_pairs: set[tuple[int, int]] | None, ground_truth: np.ndarray | None, radius_m: float):
+    The labels and ground-truth poses come with the frames (:meth:`observe`, in frame order), so the
+    truth never needs the log's future: a log that is still being written is judged the same way.
+    """
+
+    def __init__(self, source: TruthSource, radius_m: float):
         self.source = source
-        self._pairs = true_pairs
-        self._gt = ground_truth
+        self._pairs: set[tuple[int, int]] = set()
+        self._gt = np.full((1024, 3), np.nan)  # rows of the frames observed; capacity doubles
+        self._frames = 0
+        self._any_gt = False
         self._radius_m = radius_m
         self.flags: list[bool | None] = []
+
+    def observe(self, frame: Frame) -> None:
+        """Take the labels and the ground-truth pose of the next (replay-local) frame."""
+        self._pairs.update(frame.true_loops)
+        if self._frames == len(self._gt):
+            self._gt = np.concatenate([self._gt, np.full_like(self._gt, np.nan)])
+        gt = frame.ground_truth
+        if gt is not None and math.isfinite(gt.x_m):
+            self._gt[self._frames] = (gt.x_m, gt.y_m, gt.yaw_rad)
+            self._any_gt = True
+        self._frames += 1
+
+    @property
+    def ground_truth(self) -> np.ndarray | None:
+        """``(frames observed, 3)`` ground truth (NaN rows where unknown), or ``None`` when none is known."""
+        return self._gt[: self._frames] if self._any_gt else None
 
     def add(self, constraints: Sequence[Constraint]) -> tuple[bool | None, ...]:
         if not constraints:
@@ -335,8 +362,10 @@ class _Truth:
             new = loop_truth(pairs, true_pairs=self._pairs).is_true
         elif self.source is TruthSource.GROUND_TRUTH:
             index = np.asarray(pairs, dtype=np.int64)
-            finite = np.all(np.isfinite(self._gt[index.reshape(-1), :2]).reshape(-1, 4), axis=1)
-            judged = loop_truth(pairs, ground_truth=np.nan_to_num(self._gt), radius_m=self._radius_m).is_true
+            gt = self.ground_truth
+            gt = np.full((int(index.max()) + 1, 3), np.nan) if gt is None else gt
+            finite = np.all(np.isfinite(gt[index.reshape(-1), :2]).reshape(-1, 4), axis=1)
+            judged = loop_truth(pairs, ground_truth=np.nan_to_num(gt), radius_m=self._radius_m).is_true
             new = tuple(t if ok else None for t, ok in zip(judged, finite))
         else:
             new = (None,) * len(pairs)
@@ -384,7 +413,7 @@ class _Retrieval:
     replayed; with ``"online"`` (the paper) the retriever warms up on the first frames.
     """
 
-    def __init__(self, config, log_path: Path):
+    def __init__(self, config, log_path: Path, *, cache: bool = True):
         from lcv_replay.retrieval.descriptors import make_backend
         from lcv_replay.retrieval.retriever import Retriever
 
@@ -392,6 +421,7 @@ class _Retrieval:
         self.backend = make_backend(config.backend, config)
         self.retriever = Retriever(config, dim=self.backend.dim)
         self._log_path = log_path
+        self._cache = cache  # False for a file still being written: its content hash is not final
 
     def _describe(self, frames: Iterable[Frame]) -> Iterator[tuple[Frame, Any]]:
         from lcv_replay.retrieval.cache import describe_frames, log_cache_key
@@ -399,7 +429,7 @@ class _Retrieval:
         return describe_frames(
             frames,
             self.backend,
-            cache_key=log_cache_key(self._log_path),
+            cache_key=log_cache_key(self._log_path) if self._cache else None,
             cache_dir=Path(self.config.cache_dir) if self.config.cache_dir else None,
             batch_size=self.config.batch_size,
         )
@@ -469,7 +499,7 @@ def _prepare(options: ReplayOptions) -> _Setup:
     from lcv_replay.verification.registry import make_verifier
 
     path = Path(options.log_path)
-    reader = open_log(path, recover=options.recover)
+    reader = (options.open_reader or open_log)(path, recover=options.recover)
     info = reader.info
     if not info.has_odometry:
         raise ReplayError(
@@ -491,18 +521,21 @@ def _prepare(options: ReplayOptions) -> _Setup:
             fix="choose --start-offset/--duration inside the log",
         )
     verifier = make_verifier(config.verification.method, config.verification, odometry_information=info.odometry_information)
-    retrieval = _Retrieval(config.retrieval, path) if source in ("images", "both") else None
+    if info.growing and config.retrieval.fit == "whole-log":
+        raise ReplayError(
+            "retrieval.fit = 'whole-log' needs the whole log before the first frame, but the log is still being written",
+            path=path,
+            fix="use retrieval.fit = 'online' (the paper's) to follow a log",
+        )
+    retrieval = _Retrieval(config.retrieval, path, cache=not info.growing) if source in ("images", "both") else None
 
     ground_truth = reader.ground_truth() if info.has_ground_truth else None
     if ground_truth is not None:
         ground_truth = ground_truth[first:last]
         if not np.any(np.isfinite(ground_truth[:, 0])):
             ground_truth = None
-    true_pairs = None
-    if info.has_labels:
-        true_pairs = {(q - first, m - first) for q, m in reader.true_loops() if m >= first}
     truth_source = choose_truth_source(source, has_labels=info.has_labels, has_ground_truth=ground_truth is not None)
-    truth = _Truth(truth_source, true_pairs, ground_truth, config.verification.consistency_radius_m)
+    truth = _Truth(truth_source, config.verification.consistency_radius_m)
     start = RunStart(
         log_path=path,
         method=config.verification.method,
@@ -556,7 +589,7 @@ def replay(
             start.log_path, start.frames, start.log_duration_s, start.method, start.constraint_source,
             "max" if options.rate is None else f"{options.rate:g}×",
         )
-        run = _Run(verifier=setup.verifier, truth=setup.truth, ground_truth=start.ground_truth, sinks=group)
+        run = _Run(verifier=setup.verifier, truth=setup.truth, sinks=group)
         pairs = setup.pairs(options)
         setup_s = clock.now() - setup_started
         loop_started = clock.now()
@@ -595,6 +628,8 @@ def _drive(pairs, run: "_Run", setup: _Setup, pacer: Pacer, clock: Clock, stop: 
             run.frame(rebase_frame(frame, setup.first), descriptor, setup.retrieval, setup.source, clock, loop_started)
             if stop.requested:
                 return True, pacer.report()
+        if stop.requested:  # the frames ended because of the stop (a follower waiting for data)
+            return True, pacer.report()
         pacing = pacer.report()
         run.finish()
         return False, pacing
@@ -605,10 +640,9 @@ def _drive(pairs, run: "_Run", setup: _Setup, pacer: Pacer, clock: Clock, stop: 
 class _Run:
     """The per-run state of the loop: constraints, the last step, and the final answer."""
 
-    def __init__(self, *, verifier, truth: _Truth, ground_truth: np.ndarray | None, sinks: SinkGroup):
+    def __init__(self, *, verifier, truth: _Truth, sinks: SinkGroup):
         self.verifier = verifier
         self.truth = truth
-        self.ground_truth = ground_truth
         self.sinks = sinks
         self.constraints: list[Constraint] = []
         self.frames = 0
@@ -628,6 +662,7 @@ class _Run:
         if self.first_stamp is None:
             self.first_stamp = local.stamp_ns
         self.last_stamp = local.stamp_ns
+        self.truth.observe(local)
         self.verifier.add_frame(local.index, local.odom)
         candidates: list[LoopCandidate] = []
         retrieval_update = None
@@ -666,7 +701,7 @@ class _Run:
             frame_index=step.frame_index,
             constraints=arrived,
             detection=detection,
-            ate_rmse_m=_ate_rmse(top_trajectory(step), self.ground_truth),
+            ate_rmse_m=_ate_rmse(top_trajectory(step), self.truth.ground_truth),
             hypotheses=len(step.ranking) if step.ranking else None,
         )
 
@@ -689,7 +724,7 @@ class _Run:
             frame_index=final.frame_index,
             constraints=len(result.constraints),
             detection=detection,
-            ate_rmse_m=_ate_rmse(result.trajectory, self.ground_truth),
+            ate_rmse_m=_ate_rmse(result.trajectory, self.truth.ground_truth),
             hypotheses=len(result.ranking) if result.ranking else None,
         )
         if final is self.last_step and metrics == self.last_metrics:

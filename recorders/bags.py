@@ -534,7 +534,7 @@ def pick_topics(
             raise RecorderError(
                 f"several odometry candidates: {_listing(topics, choices, counts)}",
                 path=path,
-                fix="choose one with --odom-topic" + (f" (and the ground truth with --ground-truth-topic)" if not ground_truth else ""),
+                fix="choose one with --odom-topic" + (" (and the ground truth with --ground-truth-topic)" if not ground_truth else ""),
             )
     if odom is not None and odom == ground_truth:
         raise RecorderError(f"{odom} is both the odometry and the ground truth", path=path, fix="choose two different topics")

@@ -37,7 +37,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Iterator, Literal, Sequence
 
@@ -47,7 +47,6 @@ from lcv_replay.errors import RecorderError
 from lcv_replay.records import StereoCalibration
 from recorders.bags import (
     CAMERA_INFO_TYPES,
-    IMAGE_TYPES,
     POSE_TYPES,
     TF_TOPICS,
     TF_TYPES,
@@ -261,60 +260,90 @@ class PoseStream:
     poses: np.ndarray | None = None
 
 
-@dataclass
-class _Scan:
-    streams: dict[str, PoseStream] = field(default_factory=dict)
-    infos: dict[str, Any] = field(default_factory=dict)
-    tf: TfBuffer = field(default_factory=TfBuffer)
-    messages: int = 0
-
-
 def _planar(raw: np.ndarray) -> np.ndarray:
     """``(M, 7)`` ``x y z qx qy qz qw`` -> ``(M, 3)`` planar poses (z-up frames on both sides)."""
     return project_to_planar(transforms_from_quaternions(raw[:, :3], raw[:, 3:]), R_sensor_body=R_BODY_IDENTITY, R_planar_world=R_BODY_IDENTITY)
 
 
-def _scan(reader: Any, bag: BagSource, topics: dict[str, str], wanted: dict[str, str], options: RosbagOptions, with_tf: bool) -> _Scan:
-    scan = _Scan()
-    names = set(wanted.values())
-    connections = [c for c in reader.connections if c.topic in names or (with_tf and c.topic in TF_TOPICS and c.msgtype in TF_TYPES)]
-    stamps: dict[str, list[int]] = {t: [] for t in names}
-    raw_poses: dict[str, list[tuple[float, ...]]] = {t: [] for t in names}
-    for connection, log_time, raw in reader.messages(connections=connections) if connections else ():
-        message = deserialize(reader, bag, connection, log_time, raw)
-        scan.messages += 1
-        topic, msgtype = connection.topic, connection.msgtype
-        if msgtype in TF_TYPES and topic not in names:
-            add_tf_message(scan.tf, message, log_time, static=is_static_tf_topic(topic), time_source=options.time_source)
-        elif msgtype in CAMERA_INFO_TYPES:
-            scan.infos.setdefault(topic, message)
-        else:
-            stamps[topic].append(message_stamp_ns(message, log_time, options.time_source))
-            if msgtype in POSE_TYPES:
-                raw_poses[topic].append(_pose_of(message, msgtype))
-    for topic in names:
-        if topics.get(topic) in CAMERA_INFO_TYPES:
-            continue
-        array = np.asarray(stamps[topic], dtype=np.int64)
+class BagScan:
+    """Pass 1, message by message: stamps (and planar poses) per topic, the TF buffer, the first CameraInfo.
+
+    Messages may come in any order (:meth:`stream` sorts them); :meth:`add` is all a batch import
+    and a live conversion share. ``wanted`` maps roles (``left``, ``right``, ``odom``, ``gt``,
+    ``left_info``, ``right_info``) to topics; TF topics are taken when ``with_tf``.
+    """
+
+    def __init__(self, topics: dict[str, str], wanted: dict[str, str], time_source: TimeSource, *, with_tf: bool, path: Path):
+        self.topics = dict(topics)
+        self.names = set(wanted.values())
+        self.time_source = time_source
+        self.with_tf = with_tf
+        self.path = path
+        self.tf = TfBuffer()
+        self.infos: dict[str, Any] = {}
+        self.messages = 0
+        self.refs: dict[str, dict[int, Any]] = {}  # image topic -> {stamp: where the message is}, first wins
+        self._stamps: dict[str, list[int]] = {t: [] for t in self.names}
+        self._poses: dict[str, list[tuple[float, ...]]] = {t: [] for t in self.names}
+        self._streams: dict[str, PoseStream] = {}
+
+    def wants(self, topic: str, msgtype: str) -> bool:
+        return topic in self.names or (self.with_tf and topic in TF_TOPICS and msgtype in TF_TYPES)
+
+    def add(self, topic: str, msgtype: str, log_time_ns: int, message: Any, ref: Any = None) -> None:
+        """Take one deserialised message; ``ref`` locates an image message for a later decode."""
+        self.messages += 1
+        if msgtype in TF_TYPES and topic not in self.names:
+            add_tf_message(self.tf, message, log_time_ns, static=is_static_tf_topic(topic), time_source=self.time_source)
+            return
+        if msgtype in CAMERA_INFO_TYPES:
+            self.infos.setdefault(topic, message)
+            return
+        stamp = message_stamp_ns(message, log_time_ns, self.time_source)
+        self._stamps[topic].append(stamp)
+        self._streams.pop(topic, None)
+        if msgtype in POSE_TYPES:
+            self._poses[topic].append(_pose_of(message, msgtype))
+        elif ref is not None:
+            self.refs.setdefault(topic, {}).setdefault(stamp, ref)
+
+    def stream(self, topic: str) -> PoseStream:
+        """The topic's stamps, sorted and unique (a repeated stamp keeps its first message), with planar poses."""
+        if topic in self._streams:
+            return self._streams[topic]
+        array = np.asarray(self._stamps[topic], dtype=np.int64)
         order = np.argsort(array, kind="stable")
         array = array[order]
         keep = np.concatenate([[True], np.diff(array) > 0]) if len(array) else np.zeros(0, dtype=bool)
-        if (~keep).sum():
-            log.warning("%s: %d messages repeat an earlier stamp and are skipped", topic, int((~keep).sum()))
         poses = None
-        if topics[topic] in POSE_TYPES:
-            data = np.asarray(raw_poses[topic], dtype=np.float64).reshape(-1, 7)[order][keep]
+        if self.topics.get(topic) in POSE_TYPES:
+            data = np.asarray(self._poses[topic], dtype=np.float64).reshape(-1, 7)[order][keep]
             bad = np.flatnonzero(~np.isfinite(data).all(axis=1))
             if len(bad):
                 raise RecorderError(
                     f"topic {topic}: message {int(bad[0])} (stamp {int(array[keep][bad[0]])} ns) has a NaN or inf pose",
-                    path=bag.paths[0], fix="repair the bag or choose another topic",
+                    path=self.path, fix="repair the bag or choose another topic",
                 )
             try:
                 poses = _planar(data)
             except ValueError:
-                raise RecorderError(f"topic {topic}: a pose has a zero quaternion", path=bag.paths[0], fix="repair the bag or choose another topic") from None
-        scan.streams[topic] = PoseStream(array[keep], poses)
+                raise RecorderError(f"topic {topic}: a pose has a zero quaternion", path=self.path, fix="repair the bag or choose another topic") from None
+        self._streams[topic] = PoseStream(array[keep], poses)
+        return self._streams[topic]
+
+    def repeated(self, topic: str) -> int:
+        """Messages of ``topic`` skipped for repeating an earlier stamp."""
+        return len(self._stamps[topic]) - len(self.stream(topic).stamps_ns)
+
+
+def _scan(reader: Any, bag: BagSource, topics: dict[str, str], wanted: dict[str, str], options: RosbagOptions, with_tf: bool) -> BagScan:
+    scan = BagScan(topics, wanted, options.time_source, with_tf=with_tf, path=bag.paths[0])
+    connections = [c for c in reader.connections if scan.wants(c.topic, c.msgtype)]
+    for connection, log_time, raw in reader.messages(connections=connections) if connections else ():
+        scan.add(connection.topic, connection.msgtype, log_time, deserialize(reader, bag, connection, log_time, raw))
+    for topic in scan.names:
+        if topics.get(topic) not in CAMERA_INFO_TYPES and scan.repeated(topic):
+            log.warning("%s: %d messages repeat an earlier stamp and are skipped", topic, scan.repeated(topic))
     return scan
 
 
@@ -350,16 +379,17 @@ class PoseSource:
         return self.tf.sample_stamps(*self.frames)
 
 
-def _pose_source(plan_topic: str | None, frames: tuple[str, str] | None, scan: _Scan, bag: BagSource, flag: str) -> PoseSource | None:
+def pose_source(plan_topic: str | None, frames: tuple[str, str] | None, scan: BagScan, path: Path, flag: str) -> PoseSource | None:
+    """Where the odometry (or ground truth) of an import comes from: a topic or a TF chain."""
     if frames is not None:
         try:
             scan.tf.chain(*frames)  # raises, naming the frames seen, when nothing connects them
         except RecorderError as exc:
-            raise RecorderError(f"{flag} {frames[0]}:{frames[1]}: {exc.message}", path=bag.paths[0], fix=exc.fix) from None
+            raise RecorderError(f"{flag} {frames[0]}:{frames[1]}: {exc.message}", path=path, fix=exc.fix) from None
         return PoseSource(f"TF {frames[0]} -> {frames[1]}", tf=scan.tf, frames=frames)
     if plan_topic is None:
         return None
-    return PoseSource(plan_topic, stream=scan.streams[plan_topic])
+    return PoseSource(plan_topic, stream=scan.stream(plan_topic))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -539,6 +569,57 @@ def choose_topics(reader: Any, bag: BagSource, options: RosbagOptions) -> tuple[
     return topics, plan
 
 
+def topic_roles(plan: TopicPlan, topics: dict[str, str], options: RosbagOptions, *, name: str) -> dict[str, str]:
+    """Role -> topic of an import: images, odometry and ground-truth topics, camera infos (the named
+    ones, else the sibling ``camera_info`` of each image topic)."""
+    wanted: dict[str, str] = {}
+    for role, topic in (("left", plan.left), ("right", plan.right), ("odom", plan.odom), ("gt", plan.ground_truth),
+                        ("left_info", options.left_info_topic), ("right_info", options.right_info_topic)):
+        if topic:
+            wanted[role] = topic
+    for side in ("left", "right"):
+        if side in wanted and f"{side}_info" not in wanted:
+            sibling = sibling_camera_info(wanted[side], topics)
+            if sibling:
+                wanted[f"{side}_info"] = sibling
+                log.info("%s: camera info of %s: %s", name, wanted[side], sibling)
+    return wanted
+
+
+def scan_plan(scan: BagScan, plan: TopicPlan, wanted: dict[str, str], options: RosbagOptions, *, path: Path) -> FramePlan:
+    """The frames of what :class:`BagScan` has seen (the TF chains checked first)."""
+    odom = pose_source(plan.odom, plan.odom_from_tf, scan, path, "--odom-from-tf")
+    truth = pose_source(plan.ground_truth, plan.ground_truth_from_tf, scan, path, "--ground-truth-from-tf")
+    if options.vo and "left" not in wanted:
+        raise RecorderError("--vo needs stereo images", path=path, fix="name the image topics with --left-topic/--right-topic")
+    return plan_frames(
+        scan.stream(wanted["left"]) if "left" in wanted else None, scan.stream(wanted["right"]) if "right" in wanted else None,
+        None if options.vo else odom, truth, options, path=path,
+    )
+
+
+def log_header(scan: BagScan, plan: TopicPlan, wanted: dict[str, str], options: RosbagOptions, *, dataset: str,
+               stamps_ns: np.ndarray, config: dict[str, Any]) -> LogHeader:
+    """The writer's header of an import: calibration from the camera infos, the topics used in the config."""
+    calibration = None
+    if "left_info" in wanted and wanted["left_info"] in scan.infos:
+        calibration = calibration_from_camera_info(scan.infos[wanted["left_info"]], scan.infos.get(wanted.get("right_info", "")))
+    used = dict(wanted)
+    if plan.odom_from_tf:
+        used["odom_from_tf"] = ":".join(plan.odom_from_tf)
+    if plan.ground_truth_from_tf:
+        used["ground_truth_from_tf"] = ":".join(plan.ground_truth_from_tf)
+    return LogHeader(
+        dataset=options.dataset or dataset,
+        recorder="rosbag",
+        nominal_rate_hz=nominal_rate_hz(stamps_ns),
+        config=options_config(options, topics_used=used, **config),
+        calibration=calibration,
+        image_format=options.image_format,
+        jpeg_quality=options.jpeg_quality,
+    )
+
+
 def record_rosbag(
     source: str | Path | Sequence[str | Path],
     out_path: str | Path,
@@ -547,11 +628,13 @@ def record_rosbag(
     force: bool = False,
     progress: ProgressCallback | None = None,
     live: bool = False,
+    extra_config: dict[str, Any] | None = None,
 ) -> RecordStats:
     """Import a ROS 1 / ROS 2 bag into an lcv-replay log at ``out_path``.
 
     ``source`` is one path or several (split ROS 1 parts). The log is written atomically, or, with
     ``live``, chunk by chunk at its final path (see :class:`lcv_replay.log.writer.LogWriter`).
+    ``extra_config`` entries are added to the log's recorder config (the conversion cache's key).
     """
     from lcv_replay.fileio import check_output_path
 
@@ -562,33 +645,17 @@ def record_rosbag(
         topics, plan = choose_topics(reader, bag, options)
         for note in plan.notes:
             log.info("%s: %s", bag.name, note)
-        wanted: dict[str, str] = {}
-        for role, topic in (("left", plan.left), ("right", plan.right), ("odom", plan.odom), ("gt", plan.ground_truth),
-                            ("left_info", options.left_info_topic), ("right_info", options.right_info_topic)):
-            if topic:
-                wanted[role] = topic
-        for side in ("left", "right"):
-            if side in wanted and f"{side}_info" not in wanted:
-                sibling = sibling_camera_info(wanted[side], topics)
-                if sibling:
-                    wanted[f"{side}_info"] = sibling
-                    log.info("%s: camera info of %s: %s", bag.name, wanted[side], sibling)
+        wanted = topic_roles(plan, topics, options, name=bag.name)
         scan = _scan(reader, bag, topics, wanted, options, with_tf=plan.needs_tf)
-    odom = _pose_source(plan.odom, plan.odom_from_tf, scan, bag, "--odom-from-tf")
-    truth = _pose_source(plan.ground_truth, plan.ground_truth_from_tf, scan, bag, "--ground-truth-from-tf")
-    if options.vo and "left" not in wanted:
-        raise RecorderError("--vo needs stereo images", path=bag.paths[0], fix="name the image topics with --left-topic/--right-topic")
-    frames_plan = plan_frames(
-        scan.streams.get(wanted.get("left", "")), scan.streams.get(wanted.get("right", "")),
-        None if options.vo else odom, truth, options, path=bag.paths[0],
-    )
+    frames_plan = scan_plan(scan, plan, wanted, options, path=bag.paths[0])
     if frames_plan.dropped_unpaired:
         log.warning("%s: dropped %d images without a stereo partner within %d ns", bag.name, frames_plan.dropped_unpaired, options.stereo_tolerance_ns)
     stamps = frames_plan.stamps_ns
 
-    calibration = None
-    if "left_info" in wanted and wanted["left_info"] in scan.infos:
-        calibration = calibration_from_camera_info(scan.infos[wanted["left_info"]], scan.infos.get(wanted.get("right_info", "")))
+    header = log_header(scan, plan, wanted, options, dataset=bag.name, stamps_ns=stamps, config=dict(
+        source=[str(p) for p in bag.paths], bag_format=bag.kind, storage=bag.storage, messages_read=scan.messages,
+        **(extra_config or {}),
+    ))
     image_source = None
     if "left" in wanted:
         image_wanted = {wanted["left"]: {int(s): i for i, s in enumerate(stamps)}}
@@ -603,24 +670,9 @@ def record_rosbag(
 
     frames = make_frames(stamps, left=loaders("left"), right=loaders("right"), odometry=frames_plan.odometry,
                          ground_truth=frames_plan.ground_truth)
-    used = {k: v for k, v in wanted.items()}
-    if plan.odom_from_tf:
-        used["odom_from_tf"] = ":".join(plan.odom_from_tf)
-    if plan.ground_truth_from_tf:
-        used["ground_truth_from_tf"] = ":".join(plan.ground_truth_from_tf)
-    header = LogHeader(
-        dataset=options.dataset or bag.name,
-        recorder="rosbag",
-        nominal_rate_hz=nominal_rate_hz(stamps),
-        config=options_config(options, source=[str(p) for p in bag.paths], bag_format=bag.kind, storage=bag.storage,
-                              topics_used=used, messages_read=scan.messages),
-        calibration=calibration,
-        image_format=options.image_format,
-        jpeg_quality=options.jpeg_quality,
-    )
     try:
         return write_log(out_path, header, frames, force=force, progress=progress, started=started, prefetch=2,
-                         image_odometry=vo_hook(options.vo, calibration), live=live)
+                         image_odometry=vo_hook(options.vo, header.calibration), live=live)
     finally:
         if image_source is not None:
             image_source.close()

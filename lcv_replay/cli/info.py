@@ -17,7 +17,7 @@ from lcv_replay.cli.app import app, bench_app
 
 @app.command("info", help="Show a log's topics, counts, rates, frames and contents (like 'ros2 bag info'); also ROS 1/ROS 2 bags and any MCAP.")
 def info_command(
-    logs: list[Path] = typer.Argument(..., metavar="LOG...", help="An lcv-replay MCAP log, or a foreign log: ROS 1 .bag (split parts), ROS 2 bag folder, .db3, ROS 2 or other .mcap."),
+    logs: list[Path] = typer.Argument(..., metavar="LOG", help="An lcv-replay MCAP log, or a foreign log: ROS 1 .bag (split parts), ROS 2 bag folder, .db3, ROS 2 or other .mcap."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object (stable keys; see docs/log-format.md)."),
     recover: bool = typer.Option(False, "--recover", help="Salvage the complete chunks of a truncated or damaged file."),
     check: bool = typer.Option(

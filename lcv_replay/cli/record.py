@@ -309,7 +309,7 @@ def rosbag_options(
 
 @record_app.command("rosbag")
 def record_rosbag_command(
-    bag: list[Path] = typer.Argument(..., metavar="BAG...", help="ROS 1 .bag file(s) (split parts in any order), a ROS 2 bag folder (metadata.yaml + .db3/.mcap), a .db3, or a ROS 2 .mcap."),
+    bag: list[Path] = typer.Argument(..., metavar="BAG", help="ROS 1 .bag file(s) (split parts in any order), a ROS 2 bag folder (metadata.yaml + .db3/.mcap), a .db3, or a ROS 2 .mcap."),
     out: Path = OUT_OPTION,
     left_topic: Optional[str] = LEFT_TOPIC_OPTION,
     right_topic: Optional[str] = RIGHT_TOPIC_OPTION,

@@ -100,6 +100,7 @@ class LogInfo:
     true_loop_count: int = 0
     image_format: str | None = None
     library: str = ""
+    growing: bool = False  # opened while still being written (--follow): frames and counts are those known so far
 
 
 @dataclass

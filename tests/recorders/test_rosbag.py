@@ -16,7 +16,6 @@ import pytest
 from typer.testing import CliRunner
 
 from lcv_replay.cli import app
-from lcv_replay.errors import RecorderError
 from lcv_replay.log.reader import open_log
 from recorders.common import read_image
 from recorders.rosbag import RosbagOptions, image_to_array, record_rosbag
