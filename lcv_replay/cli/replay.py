@@ -144,7 +144,8 @@ def replay_command(
     import dataclasses
 
     from lcv_replay.config import load_config
-    from lcv_replay.replay import ReplayOptions, StopToken, parse_rate, replay
+    from lcv_replay.pacing import parse_rate
+    from lcv_replay.replay import ReplayOptions, StopToken, replay
 
     topic_flags = {
         "--left-topic": left_topic, "--right-topic": right_topic, "--no-images": no_images or None,

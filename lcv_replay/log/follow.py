@@ -58,7 +58,7 @@ from lcv_replay.log.container import (
     _scan_chunk,
 )
 from lcv_replay.log.reader import LogReader
-from lcv_replay.records import Frame
+from lcv_replay.records import Frame, FrameWindow
 
 log = logging.getLogger(__name__)
 
@@ -194,6 +194,19 @@ def _quiet(logger_name: str) -> Iterator[None]:
         logger.disabled = was
 
 
+@dataclasses.dataclass(frozen=True)
+class GrowingWindow(FrameWindow):
+    """A :class:`~lcv_replay.records.FrameWindow` of a log still being written.
+
+    ``first`` and ``last`` index the frames known when it was made (the replay's start); the
+    follower goes on past ``last`` up to ``end_ns`` (``None``: to the end of the recording).
+    ``t0_ns`` is the window's start time.
+    """
+
+    t0_ns: int = 0
+    end_ns: int | None = None
+
+
 class FollowReader:
     """A log being written, read as it grows (see the module docstring). Made by :func:`follow_log`."""
 
@@ -274,31 +287,44 @@ class FollowReader:
     def chunks_decoded(self) -> int:
         return self._tail.container.chunks_decoded
 
-    def frames(self, *, start_offset_s: float = 0.0, duration_s: float | None = None) -> Iterator[Frame]:
-        """Frames in time order as they are written, within ``[start + start_offset_s, + duration_s)``.
-
-        Blocks while waiting for the file to grow; ends as the module docstring says.
-        """
+    def window(self, start_offset_s: float = 0.0, duration_s: float | None = None) -> "GrowingWindow":
+        """The frames of ``[stamp_0 + start_offset_s, + duration_s)``: ``first``/``last`` among the frames
+        known now (``last`` grows as :meth:`frames` follows the file), and the window's times."""
         if not (math.isfinite(start_offset_s) and start_offset_s >= 0):
             raise ConfigError(f"start offset {start_offset_s} s must be >= 0", fix="pass a non-negative --start-offset")
         if duration_s is not None and not (duration_s > 0):
             raise ConfigError(f"duration {duration_s} s must be > 0", fix="pass a positive --duration")
-        t0 = int(self._snapshot.frame_stamps_ns[0]) + round(start_offset_s * 1e9)
+        stamps = self.frame_stamps_ns
+        t0 = int(stamps[0]) + round(start_offset_s * 1e9)
         t_end = None if duration_s is None or not math.isfinite(duration_s) else t0 + round(duration_s * 1e9)
-        return self._follow(t0, t_end)
+        first = int(np.searchsorted(stamps, t0, "left"))
+        last = len(stamps) if t_end is None else int(np.searchsorted(stamps, t_end, "left"))
+        return GrowingWindow(first, last, t0_ns=t0, end_ns=t_end)
+
+    def frames(
+        self, *, start_offset_s: float = 0.0, duration_s: float | None = None, window: FrameWindow | None = None
+    ) -> Iterator[Frame]:
+        """Frames in time order as they are written, within ``[start + start_offset_s, + duration_s)``
+        (or a :meth:`window`). Frames keep their log indices.
+
+        Blocks while waiting for the file to grow; ends as the module docstring says.
+        """
+        if window is None:
+            window = self.window(start_offset_s, duration_s)
+        if isinstance(window, GrowingWindow):
+            return self._follow(window.first, window.end_ns)
+        return self._follow(window.first, int(self._snapshot.frame_stamps_ns[window.last - 1]) + 1 if window.last else None)
 
     # -- following ---------------------------------------------------------------------------------
-    def _follow(self, t0: int, t_end: int | None) -> Iterator[Frame]:
-        i = 0
+    def _follow(self, first: int, t_end: int | None) -> Iterator[Frame]:
+        i = first
         while True:
             snapshot, ready = self._snapshot, self._ready
             stamps = snapshot._tables.stamps_ns
             while i < ready:
-                stamp = int(stamps[i])
-                if t_end is not None and stamp >= t_end:
+                if t_end is not None and int(stamps[i]) >= t_end:
                     return
-                if stamp >= t0:
-                    yield next(snapshot._iter_frames(i, i + 1))
+                yield next(snapshot._iter_frames(i, i + 1))
                 i += 1
             if self._ended:
                 return
