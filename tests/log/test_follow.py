@@ -167,3 +167,23 @@ def test_an_interrupted_live_recording_is_a_valid_shorter_log(tmp_path: Path) ->
         assert log.info.frames == 5 and log.info.metadata["chunking"] == "frame"
         assert log.info.chunk_count == 5  # one chunk per frame
         assert np.allclose(log.odometry()[:, 0], range(5))
+
+
+def test_bench_follow_and_bench_rosbag_print_tables(kitti07, tmp_path: Path) -> None:
+    import json
+
+    runner = CliRunner()
+    out = tmp_path / "follow.json"
+    result = runner.invoke(app, ["bench", "follow", "--log", str(kitti07["finished"]), "--frames", "300", "--rate-hz", "300",
+                                 "--poll-s", "0.01", "--outputs", "file", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "p50 ms" in result.output and "goal: p99 < 1000 ms at 10 Hz" in result.output
+    (row,) = json.loads(out.read_text())
+    assert row["frames"] == 300 and row["summary_equals_offline"] and 0 < row["latency_p50_ms"] <= row["latency_max_ms"]
+    out = tmp_path / "rosbag.json"
+    result = runner.invoke(app, ["bench", "rosbag", str(shared_path("ros1", "tf_example.bag")), "--odom-from-tf", "odom:base_link",
+                                 "--repeats", "1", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    rows = json.loads(out.read_text())
+    assert [r["what"] for r in rows] == ["rosbags read", "rosbags read + deserialise", "record rosbag"]
+    assert all(r["messages"] == 518 for r in rows)  # /tf and /tf_static, read by all three
