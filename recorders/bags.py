@@ -20,7 +20,6 @@ This module owns:
 from __future__ import annotations
 
 import contextlib
-import datetime as _dt
 import logging
 import re
 from dataclasses import dataclass
@@ -796,24 +795,11 @@ def _shell_quote(text: str) -> str:
     return shlex.quote(text)
 
 
-def _stamp_text(stamp_ns: int) -> str:
-    seconds, nanos = divmod(int(stamp_ns), 1_000_000_000)
-    when = _dt.datetime.fromtimestamp(seconds, tz=_dt.timezone.utc)
-    return f"{when:%b %d %Y %H:%M:%S}.{nanos:09d} ({seconds}.{nanos:09d})"
-
-
-def _size_text(size_bytes: int) -> str:
-    value = float(size_bytes)
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if value < 1024 or unit == "GiB":
-            return f"{value:.1f} {unit}" if unit != "B" else f"{size_bytes} B"
-        value /= 1024
-    return f"{size_bytes} B"
-
-
 def format_bag_info(info: BagInfo) -> str:
     """``ros2 bag info`` text (files, size, storage, duration, start, end, messages, topics), with
     each topic's rate, then what lcv-replay could use and the command that imports it."""
+    from lcv_replay.log.inspect import _size_text, _stamp_text  # the same figures as for our logs
+
     files = info.source.files
     lines = [
         f"Files:             {files[0].name}",

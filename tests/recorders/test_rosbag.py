@@ -327,14 +327,7 @@ def test_bad_bags_get_one_error_line(tmp_path: Path) -> None:
     fails([str(folder)], "metadata.yaml lists tf_example.db3, which is not in the bag folder", "copy the whole bag folder")
     fails([str(folder / "metadata.yaml")], "metadata.yaml lists tf_example.db3")
     # A split ROS 1 bag with a missing part.
-    from tests.recorders.bag_writer import BagBuilder
-
-    for part in (0, 1, 2):
-        builder = BagBuilder("ros1")
-        for k in range(3):
-            t = (10 * part + k) * 10**9
-            builder.add("/odom", t, builder.odometry(t, float(10 * part + k), 0.0, 0.0))
-        builder.write(tmp_path / f"run_{part}.bag")
+    _split_bag(tmp_path)
     fails([str(tmp_path / "run_0.bag"), str(tmp_path / "run_2.bag")], "split bag run: part run_1.bag is missing", "pass every part")
     (tmp_path / "run_1.bag").rename(tmp_path / "elsewhere.bag")
     fails([str(tmp_path / "run_2.bag"), str(tmp_path / "run_0.bag")], "part run_1.bag is missing", "copy the missing part")
@@ -344,7 +337,8 @@ def test_bad_bags_get_one_error_line(tmp_path: Path) -> None:
     fails([str(broken), "--odom-from-tf", "odom:base_link"], "the bag cannot be read")
 
 
-def test_split_ros1_parts_import_in_order(tmp_path: Path) -> None:
+def _split_bag(folder: Path) -> None:
+    """run_0.bag, run_1.bag, run_2.bag: a ROS 1 recording split in three parts of 3 odometry messages."""
     from tests.recorders.bag_writer import BagBuilder
 
     for part in (0, 1, 2):
@@ -352,7 +346,11 @@ def test_split_ros1_parts_import_in_order(tmp_path: Path) -> None:
         for k in range(3):
             t = (10 * part + k) * 10**9
             builder.add("/odom", t, builder.odometry(t, float(10 * part + k), 0.0, 0.0))
-        builder.write(tmp_path / f"run_{part}.bag")
+        builder.write(folder / f"run_{part}.bag")
+
+
+def test_split_ros1_parts_import_in_order(tmp_path: Path) -> None:
+    _split_bag(tmp_path)
     out = tmp_path / "run.mcap"
     stats = record_rosbag([tmp_path / "run_2.bag", tmp_path / "run_0.bag", tmp_path / "run_1.bag"], out, RosbagOptions())
     assert stats.frames == 9
