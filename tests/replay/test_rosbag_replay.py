@@ -105,6 +105,7 @@ def test_bag_import_keeps_every_frame(world, tmp_path: Path, caplog) -> None:
                 assert np.array_equal(fa.left.decode(), left) and np.array_equal(fb.right.decode(), right)
 
 
+@pytest.mark.slow
 def test_replaying_the_bag_directly_equals_replaying_the_log(world, tmp_path: Path, monkeypatch) -> None:
     monkeypatch.setenv("LCV_CACHE_DIR", str(tmp_path / "cache"))
     config_path = write_config(tmp_path / "images.toml", IMAGE_ROUTE_TOML)
