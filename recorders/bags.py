@@ -250,7 +250,8 @@ def _ros2_source(path: Path) -> BagSource:
 
 
 def _metadata(folder: Path) -> dict:
-    from ruamel.yaml import YAML
+    """``rosbag2_bagfile_information`` of a bag folder (to name its data files before rosbags opens it)."""
+    from ruamel.yaml import YAML  # rosbags' own YAML parser (a dependency of rosbags)
     from ruamel.yaml.error import YAMLError
 
     try:
