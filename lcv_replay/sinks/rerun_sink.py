@@ -67,6 +67,7 @@ PENDING_EVERY = 10  # ... else every this many frames
 PENDING_MAX_DRAWN = 300  # the newest pending constraints drawn (all of them are judged at the step)
 JPEG_QUALITY = 85
 DETERMINISTIC_FLUSH_TICK_S = 1e6  # "never": file-only recordings flush on size and at explicit points
+LIVE_REFRESH_S = 0.25  # with a viewer watching, buffered rows and the map are sent at least this often
 
 TREE_DX, TREE_DY = 150.0, 40.0  # generation-tree layout: depth step and row step (graph view units)
 REJECTED_MAX_DRAWN = 400  # rejected candidates drawn per step (evenly over their ids); all are in /postmortem
@@ -268,11 +269,12 @@ class RerunSink(BaseSink):
         self._accepted: set[int] = set()
         self._top: tuple[int, int] | None = None  # (hypothesis id, score) of rank 1
         self._tree: dict[int, tuple[int | None, int | None, int]] = {}  # id -> (parent, constraint, window)
-        self._gt_display: np.ndarray | None = None
+        self._gt_rows: list[np.ndarray] = []  # ground truth per frame (world frame): the start's, then the frames'
         self._frame = 0
         self._stamp_ns = 0
         self._stamps: list[int] = []  # log_time of each frame, by index
         self._stages: list[str] | None = None  # verifier stage names of /metrics/stage_time_s
+        self._last_refresh = time.monotonic()
         self._recorder = RunRecorder()  # the run record, stored under /postmortem at the end
         self._wrong_seen = False  # a false acceptance was bookmarked
         self._missed_seen = False  # a missed true loop was bookmarked
@@ -359,7 +361,7 @@ class RerunSink(BaseSink):
         for name, color in (("precision", (40, 200, 80)), ("recall", (60, 140, 250)), ("ate_rmse_m", (240, 90, 40))):
             rec.log(bp.metric_path(name), rr.SeriesLines(colors=[color], names=[name]), static=True)
         if start.ground_truth is not None and len(start.ground_truth):
-            self._gt_display = np.asarray(start.ground_truth, dtype=np.float64)
+            self._gt_rows = list(np.asarray(start.ground_truth, dtype=np.float64))
 
     # ------------------------------------------------------------------ per frame
     def _set_time(self, frame: int, stamp_ns: int) -> None:
@@ -375,8 +377,11 @@ class RerunSink(BaseSink):
         self._stamps.append(int(frame.stamp_ns))
         odom = frame.odom
         self._map.add_odometry((odom.x_m, odom.y_m, odom.yaw_rad) if odom is not None else self._last_odom())
-        if self._gt_display is not None and self._map.frames == 1:
-            self._gt_display = anchor_to_first(self._gt_display, self._map.odometry[0])
+        if frame.index >= len(self._gt_rows) and (frame.ground_truth is not None or self._gt_rows):
+            # A log still being written (--follow) knew only part of its ground truth at the start.
+            self._gt_rows += [np.full(3, np.nan)] * (frame.index - len(self._gt_rows))
+            gt = frame.ground_truth
+            self._gt_rows.append(np.array([gt.x_m, gt.y_m, gt.yaw_rad]) if gt is not None else np.full(3, np.nan))
         if update.new_constraints:
             self._constraint_rows.extend([(c.id, c.query_frame, c.match_frame) for c in update.new_constraints])
 
@@ -399,6 +404,12 @@ class RerunSink(BaseSink):
             self._log_trajectories()
         if frame.index % COLUMN_FLUSH_FRAMES == COLUMN_FLUSH_FRAMES - 1:
             self._flush_columns()
+        elif self.outputs.live and time.monotonic() - self._last_refresh >= LIVE_REFRESH_S:
+            # Frames that arrive slowly (a followed log, a paced replay): a viewer sees each one now,
+            # not 50 frames later. A replay at full speed never gets here between two batches.
+            self._flush_columns()
+            self._log_trajectories()
+            self._last_refresh = time.monotonic()
 
     def _flush_columns(self) -> None:
         self._columns.flush(self._rec)
@@ -441,8 +452,20 @@ class RerunSink(BaseSink):
         n = self._map.frames
         rec.log(bp.TRAJ_ODOMETRY, rr.LineStrips2D([self._map.odometry[:, :2]]))
         rec.log(bp.TRAJ_BEST, rr.LineStrips2D([self._map.poses()[:, :2]]))
-        if self._gt_display is not None:
-            rec.log(bp.TRAJ_GROUND_TRUTH, rr.LineStrips2D([self._gt_display[:n, :2]]))
+        truth = self._truth_display()
+        if truth is not None:  # drawn from the odometry's first pose, so the drift shows as their separation
+            rec.log(bp.TRAJ_GROUND_TRUTH, rr.LineStrips2D([truth[:n, :2]]))
+
+    def _truth_display(self) -> np.ndarray | None:
+        """``(N, 3)`` ground truth of the frames so far moved onto the odometry's first pose (NaN
+        rows where unknown), or ``None`` without ground truth."""
+        n = self._map.frames
+        if not self._gt_rows or n == 0:
+            return None
+        rows = np.asarray(self._gt_rows[:n], dtype=np.float64)
+        if len(rows) < n:
+            rows = np.vstack([rows, np.full((n - len(rows), 3), np.nan)])
+        return anchor_to_first(rows, self._map.odometry[0])
 
     # ------------------------------------------------------------------ retrieval
     def on_retrieval(self, update: RetrievalUpdate) -> None:
@@ -564,8 +587,9 @@ class RerunSink(BaseSink):
                 ),
             )
         self._drawn_rejected = (int(min(groups[bp.CONSTRAINTS_REJECTED].sum(), REJECTED_MAX_DRAWN)), int(groups[bp.CONSTRAINTS_REJECTED].sum()))
-        if self._gt_display is not None:  # the verdict's mistakes where the places really are
-            truth_xy = self._gt_display[:, :2]
+        truth = self._truth_display()
+        if truth is not None:  # the verdict's mistakes where the places really are
+            truth_xy = truth[:, :2]
             for path, mask in ((bp.TRUTH_WRONG, groups[bp.CONSTRAINTS_WRONG]), (bp.TRUTH_MISSED, groups[bp.CONSTRAINTS_MISSED])):
                 picked = [constraints[i] for i in np.flatnonzero(mask)]
                 pairs = np.array([(c.query_frame, c.match_frame) for c in picked], dtype=np.int64).reshape(-1, 2)
@@ -592,7 +616,7 @@ class RerunSink(BaseSink):
             ("faint grey", f"{rejected} rejected" + (f" ({drawn} drawn)" if drawn < rejected else "")),
             ("light blue / grey", "ground truth / odometry (under)"),
         ]
-        if self._gt_display is not None:
+        if self._gt_rows:
             cells.append(("thin red / orange on the light blue", "false / missed loops between their true places"))
         cells += [
             ("thin blue", "other top hypotheses"),

@@ -505,6 +505,7 @@ class RunRecorder(BaseSink):
         self._stamps: list[int] = []
         self._odometry: list[tuple[float, float, float]] = []
         self._frame_time: list[float] = []
+        self._frame_truth: list[tuple[float, float, float]] = []  # each frame's own ground truth (NaN: none)
         self._constraints: list[Constraint] = []
         self._truth: list[bool | None] = []
         self._first_accepted: dict[int, int] = {}
@@ -529,6 +530,8 @@ class RunRecorder(BaseSink):
         else:
             self._odometry.append(self._odometry[-1] if self._odometry else (0.0, 0.0, 0.0))
         self._frame_time.append(float(update.frame_time_s))
+        gt = frame.ground_truth
+        self._frame_truth.append((np.nan, np.nan, np.nan) if gt is None else (float(gt.x_m), float(gt.y_m), float(gt.yaw_rad)))
         self._constraints.extend(update.new_constraints)
         self._truth.extend(update.new_constraint_truth)
 
@@ -588,11 +591,13 @@ class RunRecorder(BaseSink):
                 traj = step.trajectories.get(h.id)
                 if traj is not None and len(traj):
                     top_trajectories[h.id] = extend_by_odometry(np.asarray(traj, dtype=np.float64)[:n], odometry)
-        ground_truth = None
+        # The start's ground truth; past its end (a followed log still being written), each frame's.
+        ground_truth = np.asarray(self._frame_truth, dtype=np.float64).reshape(n, 3)
         if start.ground_truth is not None and len(start.ground_truth):
-            ground_truth = np.full((n, 3), np.nan)
             gt = np.asarray(start.ground_truth, dtype=np.float64)[:n]
             ground_truth[: len(gt)] = gt
+        if not np.isfinite(ground_truth).any():
+            ground_truth = None
         config = dict(start.config)
         loop_info, odom_info = _default_informations(config, start.log_metadata)
         ambiguous = {int(i) for i in step.ambiguous_constraint_ids} if step is not None else set()
