@@ -133,8 +133,10 @@ def default_blueprint(*, has_images: bool, has_retrieval: bool, frames: int | No
     """The default layout; it opens on the answer.
 
     * left: the map (final estimate with its accepted loops; wrong ones red and thick, missed ones
-      orange; ground truth and odometry underneath; rejected candidates faint) over its legend;
-    * middle: camera and retrieval (image logs), the top hypotheses' table and their generation tree;
+      orange; ground truth and odometry underneath; rejected candidates faint) over its legend (and
+      the camera, for image logs);
+    * middle: retrieval (image logs: the retrieved frames, their distances, the query code) over the
+      top hypotheses' table and their generation tree;
     * right: the rank chart (naming its key), the consistency of the top hypotheses with the
       deciding constraints, metrics over the whole log (precision/recall on 0..1), and the events
       table (window ends, wrong acceptances, missed loops, rank-1 changes) with a readable frame column.
@@ -154,7 +156,11 @@ def default_blueprint(*, has_images: bool, has_retrieval: bool, frames: int | No
         contents=[f"+ {path}" for path in MAP_ENTITIES],
     )
     legend = rrb.TextDocumentView(name="Legend", origin=LEGEND)
-    left = rrb.Vertical(map_view, legend, row_shares=[10, 3])
+    if has_images:  # the camera beside the legend, under the map: the middle keeps room for tables
+        left = rrb.Vertical(map_view, rrb.Horizontal(legend, rrb.Spatial2DView(name="Camera (left)", origin=CAMERA_LEFT),
+                                                     column_shares=[3, 2]), row_shares=[10, 4])
+    else:
+        left = rrb.Vertical(map_view, legend, row_shares=[10, 3])
     hypotheses = rrb.Vertical(
         rrb.TextDocumentView(name="Top hypotheses (rank, key, constraints)", origin=HYPOTHESES_SEQUENCES),
         rrb.GraphView(name="Generation tree of the top hypotheses", origin=HYPOTHESES_TREE),
@@ -166,20 +172,15 @@ def default_blueprint(*, has_images: bool, has_retrieval: bool, frames: int | No
         rrb.TextDocumentView(name="Run report", origin=REPORT, contents=[f"+ {REPORT}"]),
         rrb.TextDocumentView(name="Timing", origin=REPORT_TIMING),
     )
-    middle: list = []
-    if has_images:
-        middle.append(rrb.Spatial2DView(name="Camera (left)", origin=CAMERA_LEFT))
+    middle: list = [report]
     if has_retrieval:
-        middle.append(
-            rrb.Vertical(
-                rrb.Spatial2DView(name="Query code", origin=RETRIEVAL_CODE),
-                rrb.TimeSeriesView(name="Retrieval L2 distance by rank", origin=RETRIEVAL_DISTANCES,
-                                   plot_legend=rrb.PlotLegend(visible=False)),
-                rrb.TextDocumentView(name="Retrieved frames", origin=RETRIEVAL_MATCHES),
-                row_shares=[1, 3, 4],
-            )
-        )
-    middle.append(report)
+        middle.insert(0, rrb.Tabs(
+            rrb.TextDocumentView(name="Retrieved frames", origin=RETRIEVAL_MATCHES),
+            rrb.TimeSeriesView(name="Retrieval L2 distance by rank", origin=RETRIEVAL_DISTANCES,
+                               plot_legend=rrb.PlotLegend(visible=False)),
+            rrb.Spatial2DView(name="Query code", origin=RETRIEVAL_CODE),
+        ))
+    middle_shares = [4, 7] if has_retrieval else [1]
     axis = _full_range(frames)
     unit = ScalarAxis(range=(-0.02, 1.05), zoom_lock=True)
     metrics = rrb.Tabs(
@@ -212,7 +213,7 @@ def default_blueprint(*, has_images: bool, has_retrieval: bool, frames: int | No
         row_shares=[2, 2, 2, 3],
     )
     return rrb.Blueprint(
-        rrb.Horizontal(left, rrb.Vertical(*middle), right, column_shares=[5, 3, 4]),
+        rrb.Horizontal(left, rrb.Vertical(*middle, row_shares=middle_shares), right, column_shares=[5, 3, 4]),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
         rrb.TimePanel(state="expanded", timeline=FRAME_TIMELINE, play_state="following"),

@@ -607,8 +607,8 @@ class RerunSink(BaseSink):
         cells = [
             ("gold (thick)", "best estimate (rank 1)"),
             ("green", f"{count[S.ACCEPTED]} accepted" + (" true" if truth_known else "")),
-            ("red (thickest)", f"{count[S.ACCEPTED_FALSE]} accepted but **false**"),
-            ("orange", f"{count[S.REJECTED_TRUE]} true loops **missed**"),
+            ("red (thickest)", f"{count[S.ACCEPTED_FALSE]} accepted but false"),
+            ("orange", f"{count[S.REJECTED_TRUE]} true loops missed"),
         ]
         if ambiguous:
             cells.append(("violet", f"{len(ambiguous)} ambiguous (flagged)"))
@@ -621,10 +621,8 @@ class RerunSink(BaseSink):
         cells += [
             ("thin blue", "other top hypotheses"),
         ]
-        half = (len(cells) + 1) // 2
-        pairs = list(zip(cells[:half], cells[half:] + [("", "")]))
-        text = "| colour | on the map | colour | on the map |\n|---|---|---|---|\n" + "\n".join(
-            f"| {a} | {b} | {c} | {d} |" for (a, b), (c, d) in pairs)
+        # Prose, not a table: it wraps to whatever width the panel has.
+        text = " · ".join(f"**{colour}**: {meaning}" for colour, meaning in cells)
         self._rec.log(bp.LEGEND, rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN))
 
     def _log_consistency(self, step, truth: Sequence[bool | None]) -> None:

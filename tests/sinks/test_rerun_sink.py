@@ -76,7 +76,7 @@ def test_ranks_constraints_consistency_and_events(scripted):
     window = next(t for t, level in zip(texts, levels) if level == "WINDOW")
     assert window.startswith("frame 19: window 0 ends, 2 accepted (+2), 1 false, 0 missed, P 0.500 R 1.000")
     legend = last_row(tables[bp.LEGEND], "TextDocument:text")[0]
-    assert "2 accepted true" in legend and "0 accepted but **false**" in legend
+    assert "**green**: 2 accepted true" in legend and "**red (thickest)**: 0 accepted but false" in legend
     code = last_row(tables[bp.RETRIEVAL_CODE], "Image:buffer")
     assert code[0] == [255 if k % 3 == 0 else 0 for k in range(20)]  # a 1 x 20 image, MSB first
     assert series(tables[bp.metric_path("constraints")])[-1] == (29, 3.0)
