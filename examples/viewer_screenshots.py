@@ -64,7 +64,12 @@ def main() -> int:
         if name != "demo" and not KITTI_GRAPH.is_file():
             print(f"{name}: skipped, {KITTI_GRAPH} not found")
             continue
-        png = take_screenshot(build(name, args.out), args.out / f"{name}.png")
+        try:
+            png = take_screenshot(build(name, args.out), args.out / f"{name}.png")
+        except RuntimeError as exc:
+            print(f"{name}: no screenshot ({exc})")
+            failed = True
+            continue
         fill = first_screen(png)
         empty = fill.empty_panels()
         failed |= bool(empty)

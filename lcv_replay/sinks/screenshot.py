@@ -2,7 +2,9 @@
 
 :func:`take_screenshot` runs the shared tool ``viewer-screenshot.sh REC.rrd OUT.png`` (the real
 Rerun viewer, headless, on Xvfb and Mesa's software Vulkan) — what ``rerun REC.rrd`` shows first,
-without touching the time cursor. :func:`first_screen` measures how much is drawn in each panel of
+without touching the time cursor — or :func:`headless_screenshot`, the same viewer headless on a
+port of its own (the tool's ``rerun`` uses the default port 9876, so two screenshots taken at once
+can show each other's recording; tests use the headless one). :func:`first_screen` measures how much is drawn in each panel of
 the default layout (:func:`lcv_replay.sinks.blueprint.default_blueprint`); an empty map, an
 "(empty)" hypotheses panel or a blank metrics plot shows up as a fill near zero.
 """
@@ -60,36 +62,80 @@ def screenshot_tool() -> Path | None:
     return next((c for c in candidates if c.is_file()), None)
 
 
-def cannot_screenshot() -> str | None:
-    """Why no viewer screenshot can be taken here, or ``None`` when it can."""
-    if screenshot_tool() is None:
-        return "viewer-screenshot.sh not found (set LCV_VIEWER_SCREENSHOT or check out ../shared/tools)"
+def cannot_screenshot(*, tool: bool = True) -> str | None:
+    """Why no viewer screenshot can be taken here (with the shared tool, or headless), or ``None``."""
+    import glob
+
     if shutil.which("rerun") is None:
         return "the rerun viewer (rerun-sdk) is not on PATH"
-    if shutil.which("Xvfb") is None:
-        return "Xvfb is not installed (apt-get install xvfb mesa-vulkan-drivers)"
+    if tool:
+        if screenshot_tool() is None:
+            return "viewer-screenshot.sh not found (set LCV_VIEWER_SCREENSHOT or check out ../shared/tools)"
+        if shutil.which("Xvfb") is None:
+            return "Xvfb is not installed (apt-get install xvfb mesa-vulkan-drivers)"
+    elif not (glob.glob("/usr/share/vulkan/icd.d/*.json") or glob.glob("/etc/vulkan/icd.d/*.json")):
+        return "no Vulkan adapter for a headless viewer (apt-get install mesa-vulkan-drivers)"
     return None
 
 
-def take_screenshot(rrd: str | Path, png: str | Path, *, timeout_s: float = 240.0, attempts: int = 2) -> Path:
+def _port_in_use(port: int) -> bool:
+    import socket
+
+    with socket.socket() as s:
+        s.settimeout(0.3)
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+def take_screenshot(rrd: str | Path, png: str | Path, *, timeout_s: float = 240.0) -> Path:
     """Screenshot ``rrd`` as ``rerun REC.rrd`` first shows it; returns the PNG path.
 
-    The software-rendered viewer sometimes gives up on a heavily loaded machine (the tool allows
-    it 180 s); it is tried ``attempts`` times.
+    The shared tool runs ``rerun REC.rrd`` on the default port 9876. When that port is taken
+    (another viewer: the tool's ``rerun`` would hand the file to it), or the tool writes nothing
+    (the software renderer gave up on a loaded machine), the same first screen is taken from a
+    headless viewer of our own on a free port (the file opened, the time cursor left where the
+    recording's blueprint puts it).
 
     Raises:
-        RuntimeError: the tool is missing or wrote no screenshot.
+        RuntimeError: neither way gave a screenshot.
     """
     tool = screenshot_tool()
-    if tool is None:
-        raise RuntimeError(cannot_screenshot() or "viewer-screenshot.sh not found")
     png = Path(png)
-    for _ in range(attempts):
-        png.unlink(missing_ok=True)
-        done = subprocess.run(["bash", str(tool), str(rrd), str(png)], capture_output=True, text=True, timeout=timeout_s)
-        if done.returncode == 0 and png.is_file():
-            return png
-    raise RuntimeError(f"viewer-screenshot.sh failed {attempts} times ({done.returncode}): {done.stderr.strip()[-300:]}")
+    if tool is None or _port_in_use(9876):
+        return headless_screenshot(rrd, png, timeout_s=timeout_s)
+    png.unlink(missing_ok=True)
+    done = subprocess.run(["bash", str(tool), str(rrd), str(png)], capture_output=True, text=True, timeout=timeout_s)
+    if done.returncode == 0 and png.is_file():
+        return png
+    try:
+        return headless_screenshot(rrd, png, timeout_s=timeout_s)
+    except Exception as exc:  # the viewer's own errors are not ours to type
+        raise RuntimeError(f"viewer-screenshot.sh failed ({done.stderr.strip()[-200:]}), and a headless viewer too ({exc})") from None
+
+
+def headless_screenshot(rrd: str | Path, png: str | Path, *, timeout_s: float = 240.0) -> Path:
+    """Open ``rrd`` in a headless viewer of our own (a free port) and save what it shows first."""
+    import socket
+    import time
+
+    from rerun.experimental import ViewerClient
+
+    os.environ.setdefault("WGPU_BACKEND", "vulkan")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    viewer = ViewerClient.spawn(headless=True, port=port, hide_welcome_screen=True, memory_limit="2GB")
+    try:
+        viewer.open(str(Path(rrd).resolve()))
+        deadline = time.monotonic() + timeout_s
+        state = viewer.get_state()
+        while (state.loading or not state.recordings or not state.recordings[0].timelines) and time.monotonic() < deadline:
+            time.sleep(0.5)
+            state = viewer.get_state()
+        time.sleep(2.0)  # let every view paint once
+        Path(png).write_bytes(viewer.take_screenshot())
+    finally:
+        viewer.quit()
+    return Path(png)
 
 
 def panel_fill(image: np.ndarray, box: tuple[float, float, float, float]) -> float:
