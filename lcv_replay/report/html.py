@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import base64
 import html
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Sequence
 
 from lcv_replay.report import figures
 from lcv_replay.sinks.layout import flatten

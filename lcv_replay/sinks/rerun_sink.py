@@ -371,7 +371,6 @@ class RerunSink(BaseSink):
 
     def on_frame(self, update: FrameUpdate) -> None:
         self._recorder.on_frame(update)
-        rec = self._rec
         frame = update.frame
         self._set_time(frame.index, frame.stamp_ns)
         self._stamps.append(int(frame.stamp_ns))

@@ -7,9 +7,7 @@ pipeline.
 
 from __future__ import annotations
 
-from pathlib import Path
 
-import numpy as np
 import pytest
 
 from lcv_replay.config import RerunConfig
