@@ -1,0 +1,297 @@
+"""``lcv-replay bench fleet``: what a batch costs on this machine, and what a cluster would take.
+
+Measured in one run, side by side (the machine is shared; ratios are what hold):
+
+* **scaling**: the same KITTI g2o logs (``robustslam_kitti`` sequences x alphas, built by the
+  g2o recorder and cached like the suite's) through ``batch`` on a fresh embedded cluster of 1
+  worker, then 2 workers (``repeats`` rounds, interleaved); speedup of the batch wall time;
+* **Ray's overheads**: cluster start-up and shutdown; a fresh worker's first task; the per-task
+  cost of a 1-frame replay through Ray against the same wrapper called in this process; the
+  driver's cost per task (no-op tasks);
+* **images against the verifier** (optional): a synthetic camera log replayed with a cold and a
+  warm descriptor cache, per frame, against the g2o logs' per-frame cost (verification only);
+* **the simulation** (:mod:`lcv_replay.fleet.simulate`) of a 1,000-log corpus drawn from the
+  measured per-log costs, for 10 to 1,000 workers.
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+SIM_WORKERS = (10, 20, 50, 100, 200, 500, 1000)
+
+
+def _noop(k: int) -> int:
+    return k
+
+
+def kitti_logs(data_dir: Path, workdir: Path, sequences: Sequence[str], alphas: Sequence[str]) -> list[Path]:
+    """The KITTI g2o logs, built (or reused) the way ``bench suite`` builds its cases."""
+    from lcv_replay.bench.suite import build_case_log
+    from lcv_replay.bench.suites import robustslam_cases
+
+    return [build_case_log(case, data_dir, workdir).path for case in robustslam_cases(sequences, alphas)]
+
+
+def _per_log(state) -> list[dict[str, Any]]:
+    out = []
+    for entry in state.entry_list():
+        s = entry.summary or {}
+        rrd = state.spec.out_dir(entry.log) / "recording.rrd"
+        out.append({
+            "name": entry.log.name, "status": entry.status, "task_s": entry.seconds, "replay_s": s.get("wall_time_s"),
+            "setup_s": s.get("setup_time_s"), "frames": s.get("frames"), "log_duration_s": s.get("log_duration_s"),
+            "log_bytes": entry.log.path.stat().st_size, "rrd_bytes": rrd.stat().st_size if rrd.exists() else None,
+            "false_positives": s.get("false_positives"), "recall": s.get("recall"),
+        })
+    return out
+
+
+def measure_scaling(logs: Sequence[Path], options: Any, workers: Sequence[int], repeats: int, base: Path,
+                    note: Callable[[str], None]) -> list[dict[str, Any]]:
+    """One batch per (round, worker count), each on a fresh embedded cluster."""
+    from lcv_replay.fleet.batch import BatchSpec, run_batch
+    from lcv_replay.fleet.engine import Cluster, ClusterSpec
+    from lcv_replay.fleet.inputs import name_logs
+
+    runs = []
+    for rep in range(repeats):
+        for w in workers:
+            spec = BatchSpec(name_logs(list(logs)), base / f"w{w}-r{rep}", options, resume=False)
+            cluster = Cluster(ClusterSpec(workers=w))
+            cluster.connect()
+            try:
+                started = time.perf_counter()
+                state = run_batch(spec, cluster)
+                wall = time.perf_counter() - started
+            finally:
+                stopped = time.perf_counter()
+                cluster.close()
+                shutdown = time.perf_counter() - stopped
+            ok = state.count("ok")
+            note(f"workers {w} round {rep + 1}: {ok}/{state.total} ok in {wall:.1f} s (start-up {cluster.startup_s:.1f} s)")
+            runs.append({"workers": w, "round": rep, "wall_s": wall, "startup_s": cluster.startup_s, "shutdown_s": shutdown,
+                         "ok": ok, "logs": _per_log(state)})
+    return runs
+
+
+def measure_overheads(log: Path, options: Any, base: Path, *, tasks: int, note: Callable[[str], None]) -> dict[str, Any]:
+    """Ray's own costs around a 1-frame replay (see the module docstring)."""
+    import ray
+
+    from lcv_replay.fleet.engine import Cluster, ClusterSpec
+    from lcv_replay.fleet.inputs import FleetLog
+    from lcv_replay.fleet.task import LogJob, run_log
+
+    one_frame = replace(options, log_path=log, duration_s=1e-6, rate=None)
+    job = LogJob(FleetLog(log, "one-frame"), base / "overhead" / "one-frame", one_frame, "bench")
+    outcome = run_log(job)  # warm this process's imports
+    if outcome.status != "ok":
+        raise RuntimeError(f"the 1-frame replay failed: {outcome.error}")
+    cluster = Cluster(ClusterSpec(workers=1))
+    cluster.connect()
+    try:
+        task = cluster.remote(run_log)
+        started = time.perf_counter()
+        ray.get(task.remote(job))
+        first_s = time.perf_counter() - started
+        local, remote = [], []
+        for _ in range(tasks):  # interleaved, so that the machine's load hits both alike
+            started = time.perf_counter()
+            run_log(job)
+            local.append(time.perf_counter() - started)
+            started = time.perf_counter()
+            ray.get(task.remote(job))
+            remote.append(time.perf_counter() - started)
+        noop = cluster.remote(_noop)
+        ray.get([noop.remote(k) for k in range(20)])  # workers up
+        count = 20 * tasks
+        started = time.perf_counter()
+        ray.get([noop.remote(k) for k in range(count)])
+        noop_s = (time.perf_counter() - started) / count
+    finally:
+        stopped = time.perf_counter()
+        startup = cluster.startup_s
+        cluster.close()
+        shutdown = time.perf_counter() - stopped
+    result = {
+        "one_frame_in_process_s": statistics.median(local),
+        "one_frame_ray_s": statistics.median(remote),
+        "ray_per_task_s": statistics.median(remote) - statistics.median(local),
+        "first_task_s": first_s,
+        "worker_warmup_s": first_s - statistics.median(remote),
+        "noop_task_s": noop_s,
+        "startup_s": startup,
+        "shutdown_s": shutdown,
+        "tasks": tasks,
+    }
+    note(f"overheads: start-up {startup:.1f} s, first task {first_s:.2f} s, 1-frame task {result['one_frame_ray_s'] * 1e3:.0f} ms "
+         f"via Ray vs {result['one_frame_in_process_s'] * 1e3:.0f} ms in process, no-op {noop_s * 1e3:.2f} ms")
+    return result
+
+
+def measure_images(frames: int, workdir: Path, base: Path, options: Any, note: Callable[[str], None]) -> dict[str, Any]:
+    """A synthetic camera log (cached in ``workdir``) replayed in this process with a cold, then a
+    warm descriptor cache; seconds per frame of each."""
+    from lcv_replay.fleet.inputs import FleetLog
+    from lcv_replay.fleet.task import LogJob, run_log
+    from recorders.synthetic import SyntheticOptions, record_synthetic
+
+    path = workdir / f"synthetic-{frames}f-320x240.mcap"
+    if not path.is_file():
+        note(f"recording a {frames}-frame synthetic camera log into {path} (once)")
+        workdir.mkdir(parents=True, exist_ok=True)
+        record_synthetic(path, SyntheticOptions(frames=frames, width_px=320, height_px=240, image_format="jpeg", jpeg_quality=90), force=True)
+    runs = {}
+    previous = os.environ.get("LCV_CACHE_DIR")
+    with tempfile.TemporaryDirectory(prefix="lcv-fleet-cache-") as cache:
+        os.environ["LCV_CACHE_DIR"] = cache
+        try:
+            for which in ("cold", "warm"):
+                job = LogJob(FleetLog(path, f"images-{which}"), base / "images" / which, replace(options, log_path=path, rate=None), "bench")
+                started = time.perf_counter()
+                outcome = run_log(job)
+                runs[which] = {"task_s": time.perf_counter() - started, "replay_s": (outcome.summary or {}).get("wall_time_s"),
+                               "setup_s": (outcome.summary or {}).get("setup_time_s"), "status": outcome.status, "error": outcome.error}
+        finally:
+            if previous is None:
+                os.environ.pop("LCV_CACHE_DIR", None)
+            else:
+                os.environ["LCV_CACHE_DIR"] = previous
+    rrd = base / "images" / "cold" / "recording.rrd"
+    result = {"frames": frames, "log_bytes": path.stat().st_size, "rrd_bytes": rrd.stat().st_size if rrd.exists() else None,
+              **{f"{k}_{key}": v for k, run in runs.items() for key, v in run.items()}}
+    note(f"images: {frames} frames, cold cache {runs['cold']['task_s']:.1f} s, warm {runs['warm']['task_s']:.1f} s")
+    return result
+
+
+def simulate_corpus(scaling: list[dict[str, Any]], overheads: dict[str, Any], images: dict[str, Any] | None, *,
+                    logs: int, workers: Sequence[int], storage_gb_s: float) -> dict[str, Any]:
+    """Predictions for a ``logs``-log corpus drawn from the 1-worker run's per-log task times."""
+    import numpy as np
+
+    from lcv_replay.fleet.simulate import ClusterModel, corpus, sweep
+
+    single = [r for r in scaling if r["workers"] == min(x["workers"] for x in scaling)][0]
+    measured = [x for x in single["logs"] if x["status"] == "ok" and x["task_s"]]
+    # The first task of a fresh worker carries its warm-up, which the model adds on its own.
+    warm = [x["task_s"] - (overheads["worker_warmup_s"] if i == 0 else 0.0) for i, x in enumerate(measured)]
+    bytes_g2o = float(np.mean([x["log_bytes"] + (x["rrd_bytes"] or 0) for x in measured]))
+    model = ClusterModel(startup_s=overheads["startup_s"], worker_warmup_s=max(overheads["worker_warmup_s"], 0.0),
+                         driver_per_task_s=overheads["noop_task_s"], task_overhead_s=overheads["ray_per_task_s"],
+                         storage_bytes_per_s=storage_gb_s * 1e9)
+    sample = corpus(warm, logs)
+    out: dict[str, Any] = {
+        "model": vars(model), "logs": logs, "storage_gb_s": storage_gb_s,
+        "g2o": {"bytes_per_log": bytes_g2o, "per_log_s": warm,
+                "predictions": [p.as_dict() for p in sweep(sample, workers, model, bytes_per_log=bytes_g2o, longest_first=True)]},
+    }
+    if images and images.get("cold_status") == "ok":
+        per_frame = images["cold_task_s"] / images["frames"]
+        bytes_per_frame = (images["log_bytes"] + (images["rrd_bytes"] or 0)) / images["frames"]
+        frames = [x["frames"] for x in measured]
+        image_s = [f * per_frame for f in frames]
+        sample_images = corpus(image_s, logs)
+        mean_bytes = float(np.mean(frames)) * bytes_per_frame
+        out["images"] = {"s_per_frame": per_frame, "bytes_per_frame": bytes_per_frame, "per_log_s": image_s,
+                         "bytes_per_log": mean_bytes,
+                         "predictions": [p.as_dict() for p in sweep(sample_images, workers, model, bytes_per_log=mean_bytes, longest_first=True)]}
+    return out
+
+
+def run(*, data_dir: Path, workdir: Path, out: Path, sequences: Sequence[str], alphas: Sequence[str], workers: Sequence[int],
+        repeats: int, image_frames: int, corpus_logs: int, storage_gb_s: float, options: Any,
+        note: Callable[[str], None]) -> dict[str, Any]:
+    """Every measurement of the module docstring; the JSON document of ``bench fleet``."""
+    logs = kitti_logs(data_dir, workdir, sequences, alphas)
+    note(f"{len(logs)} KITTI g2o logs ready in {workdir}")
+    started = time.perf_counter()
+    scaling = measure_scaling(logs, options, workers, repeats, out, note)
+    smallest = min(logs, key=lambda p: p.stat().st_size)
+    overheads = measure_overheads(smallest, options, out, tasks=20, note=note)
+    images = measure_images(image_frames, workdir, out, options, note) if image_frames else None
+    walls: dict[int, list[float]] = {}
+    for r in scaling:
+        walls.setdefault(r["workers"], []).append(r["wall_s"])
+    base_w = min(walls)
+    speedups = {w: statistics.median(walls[base_w]) / statistics.median(v) for w, v in walls.items()}
+    per_round = {w: [a / b for a, b in zip(walls[base_w], v)] for w, v in walls.items()}
+    return {
+        "logs": [str(p) for p in logs],
+        "workers": list(workers),
+        "repeats": repeats,
+        "scaling": scaling,
+        "speedup": {str(w): s for w, s in speedups.items()},
+        "speedup_per_round": {str(w): v for w, v in per_round.items()},
+        "overheads": overheads,
+        "images": images,
+        "simulation": simulate_corpus(scaling, overheads, images, logs=corpus_logs, workers=SIM_WORKERS, storage_gb_s=storage_gb_s),
+        "bench_wall_s": time.perf_counter() - started,
+        "load_average": os.getloadavg(),
+        "cpus": os.cpu_count(),
+    }
+
+
+def markdown(doc: dict[str, Any]) -> str:
+    """The tables of ``bench fleet``."""
+    lines = ["## Scaling (batch wall time, fresh embedded cluster each, start-up excluded)", "",
+             "| workers | round | logs ok | wall s | start-up s | sum of replay s | speedup |", "|---:|---:|---:|---:|---:|---:|---:|"]
+    base = min(doc["workers"])
+    base_walls = {r["round"]: r["wall_s"] for r in doc["scaling"] if r["workers"] == base}
+    for r in doc["scaling"]:
+        replay = sum(x["replay_s"] or 0 for x in r["logs"])
+        lines.append(f"| {r['workers']} | {r['round'] + 1} | {r['ok']} | {r['wall_s']:.1f} | {r['startup_s']:.1f} | {replay:.1f} | "
+                     f"{base_walls[r['round']] / r['wall_s']:.2f} |")
+    lines += ["", "speedup (median over rounds): " + ", ".join(f"{w} workers {s:.2f}x" for w, s in doc["speedup"].items()), ""]
+    first = [r for r in doc["scaling"] if r["workers"] == base][0]
+    lines += ["## Per-log cost (1 worker)", "", "| log | frames | log s | task s | replay s | set-up s | rrd MB | FP | recall |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for x in first["logs"]:
+        lines.append(f"| {x['name']} | {x['frames']} | {_f(x['log_duration_s'], 0)} | {_f(x['task_s'], 2)} | {_f(x['replay_s'], 2)} | "
+                     f"{_f(x['setup_s'], 2)} | {_f((x['rrd_bytes'] or 0) / 1e6, 2)} | {x['false_positives']} | {_f(x['recall'], 3)} |")
+    o = doc["overheads"]
+    lines += ["", "## Ray's overheads", "", "| what | value |", "|---|---:|",
+              f"| start the embedded cluster (ray.init) | {o['startup_s']:.2f} s |",
+              f"| shut it down | {o['shutdown_s']:.2f} s |",
+              f"| first task on a fresh worker (1-frame log) | {o['first_task_s']:.2f} s |",
+              f"| worker warm-up (first task minus a warm one) | {o['worker_warmup_s']:.2f} s |",
+              f"| 1-frame log, wrapper in this process (median of {o['tasks']}) | {o['one_frame_in_process_s'] * 1e3:.0f} ms |",
+              f"| 1-frame log through a Ray task (median of {o['tasks']}) | {o['one_frame_ray_s'] * 1e3:.0f} ms |",
+              f"| Ray's per-task cost (difference) | {o['ray_per_task_s'] * 1e3:.0f} ms |",
+              f"| no-op task, driver throughput inverse | {o['noop_task_s'] * 1e3:.2f} ms |"]
+    im = doc.get("images")
+    if im:
+        g2o_frames = sum(x["frames"] or 0 for x in first["logs"])
+        g2o_s = sum(x["replay_s"] or 0 for x in first["logs"])
+        lines += ["", "## Images against the verifier (per frame)", "", "| replay | frames | s | ms/frame |", "|---|---:|---:|---:|",
+                  f"| synthetic camera log, cold descriptor cache (CNN) | {im['frames']} | {im['cold_task_s']:.1f} | {1e3 * im['cold_task_s'] / im['frames']:.1f} |",
+                  f"| same, warm descriptor cache | {im['frames']} | {im['warm_task_s']:.1f} | {1e3 * im['warm_task_s'] / im['frames']:.1f} |",
+                  f"| KITTI g2o logs, verification only (ilv+) | {g2o_frames} | {g2o_s:.1f} | {1e3 * g2o_s / max(g2o_frames, 1):.2f} |"]
+    sim = doc["simulation"]
+    for key, title in (("g2o", "g2o logs (verification only)"), ("images", "camera logs of the same lengths (cold cache)")):
+        if key not in sim:
+            continue
+        lines += ["", f"## Simulation: {sim['logs']} {title}, shared storage {sim['storage_gb_s']:g} GB/s (assumed)", "",
+                  "| workers | wall | speedup | utilisation | bottleneck |", "|---:|---:|---:|---:|---|"]
+        for p in sim[key]["predictions"]:
+            lines.append(f"| {p['workers']} | {_duration(p['wall_s'])} | {p['speedup']:.0f}x | {p['utilisation']:.0%} | {p['bottleneck']} |")
+    lines += ["", f"load average during the bench: {', '.join(f'{x:.1f}' for x in doc['load_average'])} ({doc['cpus']} CPUs)"]
+    return "\n".join(lines)
+
+
+def _f(value, digits: int) -> str:
+    return "–" if value is None else f"{value:.{digits}f}"
+
+
+def _duration(seconds: float) -> str:
+    if seconds >= 3600:
+        return f"{seconds / 3600:.1f} h"
+    if seconds >= 120:
+        return f"{seconds / 60:.1f} min"
+    return f"{seconds:.0f} s"
