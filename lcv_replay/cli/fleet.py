@@ -82,7 +82,7 @@ def batch_command(
     progress = _BatchProgress(console, quiet=quiet)
     with Cluster(spec_cluster) as cluster:
         progress.cluster_started(cluster)
-        with sigint_requests_stop(stop), progress:
+        with sigint_requests_stop(stop, what="no new log is started; the running ones finish and run.json is written"), progress:
             state = run_batch(spec, cluster, stop=stop, on_event=progress.on_event)
     _report(state)
 

@@ -175,6 +175,7 @@ class LogEntry:
             and ``batch``, whose fields are the entry's), or ``None``.
         attempts: Ray attempts this run (``> 1``: a worker died and Ray retried).
         seconds: the task's wall time, submission to result (``None`` for ``skipped``).
+        cpu_s: the task's CPU time in its worker (``None`` for ``skipped`` and dead workers).
     """
 
     log: FleetLog
@@ -184,6 +185,7 @@ class LogEntry:
     batch: dict[str, Any] = field(default_factory=dict)
     attempts: int = 0
     seconds: float | None = None
+    cpu_s: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         summary = None
@@ -198,6 +200,7 @@ class LogEntry:
             "summary": summary,
             "attempts": self.attempts,
             "seconds": self.seconds,
+            "cpu_s": self.cpu_s,
             "log_hash": self.batch.get("log_hash"),
             "oracle_ate_rmse_m": self.batch.get("oracle_ate_rmse_m"),
             "ate_over_oracle": self.batch.get("ate_over_oracle"),
@@ -363,9 +366,9 @@ def entry_of(result: Any, spec: BatchSpec) -> LogEntry | None:
         return None
     if outcome.status == "failed":
         reset_log_folder(job.out_dir, keep_error=True)
-        return LogEntry(job.log, "failed", error=outcome.error, attempts=outcome.attempts, seconds=result.seconds)
+        return LogEntry(job.log, "failed", error=outcome.error, attempts=outcome.attempts, seconds=result.seconds, cpu_s=outcome.cpu_s)
     return LogEntry(job.log, "ok", summary=outcome.summary, batch=(outcome.summary or {}).get(BATCH_KEY) or {},
-                    attempts=outcome.attempts, seconds=result.seconds)
+                    attempts=outcome.attempts, seconds=result.seconds, cpu_s=outcome.cpu_s)
 
 
 def reset_log_folder(folder: Path, *, keep_error: bool = False) -> None:

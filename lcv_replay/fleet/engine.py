@@ -265,18 +265,20 @@ class Cluster:
                     ray.init(
                         address="local", num_cpus=self.local_cpus(), include_dashboard=False, log_to_driver=False,
                         logging_level=logging.WARNING, namespace="lcv-replay", object_store_memory=LOCAL_OBJECT_STORE_BYTES,
-                        _system_config={"task_oom_retries": spec.max_retries},
+                        runtime_env=self.runtime_env(), _system_config={"task_oom_retries": spec.max_retries},
                     )
                 else:
-                    ray.init(address=target, log_to_driver=False, logging_level=logging.WARNING, namespace="lcv-replay")
+                    ray.init(address=target, log_to_driver=False, logging_level=logging.WARNING, namespace="lcv-replay",
+                             runtime_env=self.runtime_env())
             except FleetError:
                 raise
             except Exception as exc:  # Ray raises ConnectionError, RuntimeError, ValueError, ...
                 where = "start a local Ray cluster" if spec.local else f"join the Ray cluster at {spec.address}"
-                raise FleetError(
-                    f"could not {where}: {type(exc).__name__}: {first_line(str(exc))}",
-                    fix="see 'ray status' and the Ray logs under /tmp/ray/session_latest/logs",
-                ) from None
+                fix = "see 'ray status' and the Ray logs under /tmp/ray/session_latest/logs"
+                if not spec.local and not os.environ.get("RAY_AUTH_MODE"):
+                    fix += ("; a cluster with token authentication (Ray's default) needs RAY_AUTH_MODE=token here, "
+                            "with its token in ~/.ray/auth_token or $RAY_AUTH_TOKEN")
+                raise FleetError(f"could not {where}: {type(exc).__name__}: {first_line(str(exc))}", fix=fix) from None
             self.owned = True
         self.startup_s = time.perf_counter() - started
 
@@ -329,16 +331,28 @@ class Cluster:
         }
 
     # ------------------------------------------------------------------ running
+    def runtime_env(self) -> dict[str, Any]:
+        """The tasks' environment: thread pools capped to ``cpus_per_task`` (tasks also cap torch
+        and OpenCV themselves, :func:`cap_threads`); on a joined cluster, also this process's
+        ``lcv_replay`` and ``recorders`` packages (``py_modules``), so the nodes run the driver's
+        code whatever version they have installed (they need its dependencies).
+
+        It is set for the whole job when the connection is made (local folders can be shipped only
+        then), so the workers the embedded cluster starts with serve the tasks.
+        """
+        env: dict[str, Any] = {"env_vars": thread_env(self.spec.cpus_per_task)}
+        if not self.spec.local:
+            import lcv_replay
+            import recorders
+
+            env["py_modules"] = [str(Path(package.__file__).parent) for package in (lcv_replay, recorders)]
+        return env
+
     def remote(self, fn: Callable[..., Any]):
-        """``fn`` as a Ray task with this cluster's CPU, retry and thread settings."""
+        """``fn`` as a Ray task with this cluster's CPU and retry settings."""
         import ray
 
-        return ray.remote(fn).options(
-            num_cpus=self.spec.cpus_per_task,
-            max_retries=self.spec.max_retries,
-            retry_exceptions=False,
-            runtime_env={"env_vars": thread_env(self.spec.cpus_per_task)},
-        )
+        return ray.remote(fn).options(num_cpus=self.spec.cpus_per_task, max_retries=self.spec.max_retries, retry_exceptions=False)
 
     def run(
         self,
@@ -365,7 +379,7 @@ class Cluster:
             while queue or inflight:
                 while queue and not (stop is not None and stop.requested) and len(inflight) < self.capacity:
                     job = queue.popleft()
-                    inflight[task.remote(*args(job))] = (job, time.perf_counter())
+                    inflight[self._submit(task, args(job))] = (job, time.perf_counter())
                     if on_submit is not None:
                         on_submit(job)
                 if not inflight:
@@ -380,6 +394,13 @@ class Cluster:
             cancelled = self._cancel(inflight, on_result)
             return RunReport(tuple(cancelled), tuple(queue), aborted=True)
         return RunReport((), tuple(queue), aborted=False)
+
+    def _submit(self, task: Any, args: Sequence[Any]) -> Any:
+        try:
+            return task.remote(*args)
+        except Exception as exc:  # a refused runtime environment, a lost connection, ...
+            raise FleetError(f"Ray refused the task: {type(exc).__name__}: {first_line(str(exc))}",
+                             fix="see 'ray status' and the Ray logs under /tmp/ray/session_latest/logs") from None
 
     def _collect(self, ref: Any, entry: tuple[J, float]) -> TaskResult[J]:
         import ray

@@ -76,6 +76,7 @@ class LogOutcome:
         summary: the ``summary.json`` document (``ok`` only).
         attempts: attempts of this task so far, this one included (Ray retries after a worker died).
         seconds: wall time of this attempt, hashing and writing included.
+        cpu_s: CPU time of this attempt in the worker process (what it costs on a dedicated core).
         host, pid: where it ran.
         threads: the thread caps applied.
     """
@@ -85,6 +86,7 @@ class LogOutcome:
     summary: dict[str, Any] | None = None
     attempts: int = 1
     seconds: float = 0.0
+    cpu_s: float = 0.0
     host: str = ""
     pid: int = 0
     threads: dict[str, Any] = field(default_factory=dict)
@@ -126,7 +128,7 @@ def run_log(job: LogJob) -> LogOutcome:
     """Replay one log into ``job.out_dir`` (the Ray task body; also callable in-process)."""
     from lcv_replay.fleet.engine import cap_threads, first_line
 
-    started = time.perf_counter()
+    started, started_cpu = time.perf_counter(), time.process_time()
     host, pid = socket.gethostname(), os.getpid()
     threads = cap_threads(job.cpus)
     out = job.out_dir
@@ -141,10 +143,11 @@ def run_log(job: LogJob) -> LogOutcome:
                           "RUN_DIR must be writable from every node", host=host, pid=pid, threads=threads)
 
     def outcome(status: Status, error: str | None = None, summary: dict | None = None) -> LogOutcome:
-        return LogOutcome(status, error, summary, attempts, time.perf_counter() - started, host, pid, threads)
+        return LogOutcome(status, error, summary, attempts, time.perf_counter() - started,
+                          time.process_time() - started_cpu, host, pid, threads)
 
     try:
-        summary = _replay_into(job, host=host, pid=pid, attempts=attempts, threads=threads)
+        summary = _replay_into(job, host=host, pid=pid, attempts=attempts, threads=threads, started_cpu=started_cpu)
     except LcvError as exc:
         clear_outputs(out)
         return outcome("failed", exc.format())
@@ -165,7 +168,7 @@ def run_log(job: LogJob) -> LogOutcome:
     return outcome("ok", summary=summary)
 
 
-def _replay_into(job: LogJob, *, host: str, pid: int, attempts: int, threads: dict[str, Any]) -> dict[str, Any] | None:
+def _replay_into(job: LogJob, *, host: str, pid: int, attempts: int, threads: dict[str, Any], started_cpu: float) -> dict[str, Any] | None:
     """The replay with the fleet's sinks; writes ``summary.json`` last. ``None`` if interrupted."""
     from lcv_replay.errors import LogFormatError
     from lcv_replay.fileio import write_text_atomic
@@ -199,6 +202,7 @@ def _replay_into(job: LogJob, *, host: str, pid: int, attempts: int, threads: di
         "oracle_ate_rmse_m": reference,
         "ate_over_oracle": ate / reference if ate is not None and reference else None,
         "attempts": attempts,
+        "cpu_time_s": time.process_time() - started_cpu,
         "host": host,
         "pid": pid,
         "threads": threads,
