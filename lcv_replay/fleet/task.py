@@ -1,6 +1,7 @@
 """One log of a batch: the body of its Ray task, a thin wrapper around :func:`lcv_replay.replay.replay`.
 
-The wrapper runs the same replay as ``lcv-replay LOG.mcap --rate max`` with these sinks: the Rerun
+The wrapper runs the same replay as ``lcv-replay LOG.mcap --rate max`` (a ROS 2 MCAP or a bag is
+converted first, with the default topics, as that command does) with these sinks: the Rerun
 recording (``recording.rrd``), the oracle reference (:mod:`lcv_replay.fleet.oracle`) and, when asked,
 the export and the HTML report. It adds only what a fleet needs around the call:
 
@@ -23,7 +24,7 @@ import os
 import socket
 import time
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -178,6 +179,7 @@ def _replay_into(job: LogJob, *, host: str, pid: int, attempts: int, threads: di
     from lcv_replay.sinks.config import RerunOutputs
     from lcv_replay.sinks.rerun_sink import RerunSink
     from lcv_replay.sinks.summary import summary_json
+    from recorders.bags import is_foreign_log
 
     path = job.log.path
     if not path.is_file():
@@ -185,11 +187,17 @@ def _replay_into(job: LogJob, *, host: str, pid: int, attempts: int, threads: di
                              fix="put the logs on storage that every node mounts at the same path")
     stat = FileStat.of(path)
     log_hash = log_cache_key(path)
-    config = job.options.resolved_config()
+    options = job.options
+    if is_foreign_log(path):  # a ROS 2 MCAP or a bag: converted first, as 'lcv-replay LOG' does (cached per node)
+        from recorders.convert import converted_log
+        from recorders.rosbag import RosbagOptions
+
+        options = replace(options, log_path=converted_log([path], RosbagOptions()).path)
+    config = options.resolved_config()
     oracle = OracleReference()
     sinks: list = [RerunSink(config.rerun, RerunOutputs(save=job.out_dir / RECORDING)), oracle]
     sinks += _post_mortem_sinks(job)
-    summary = replay(job.options, sinks, stop=StopToken(), handle_sigint=False)
+    summary = replay(options, sinks, stop=StopToken(), handle_sigint=False)
     if summary.interrupted:
         return None
     document = json.loads(summary_json(summary))
