@@ -135,6 +135,8 @@ class _BatchProgress:
             self.bar = None
 
     def on_event(self, event) -> None:
+        from lcv_replay.fleet.table import fmt
+
         state = event.state
         done = state.count("ok") + state.count("failed") + state.count("skipped")
         elapsed = state.elapsed_s
@@ -156,15 +158,11 @@ class _BatchProgress:
                 e = event.entry
                 s = e.summary or {}
                 what = (e.error if e.status == "failed" else
-                        f"FP {s.get('false_positives')} R {_num(s.get('recall'))} ATE {_num(s.get('ate_rmse_m'), 2)} m, "
-                        f"{_num(s.get('wall_time_s'), 1)} s")
+                        f"FP {s.get('false_positives')} R {fmt(s.get('recall'))} ATE {fmt(s.get('ate_rmse_m'), 2)} m, "
+                        f"{fmt(s.get('wall_time_s'), 1)} s")
                 retried = f" after {e.attempts} attempts" if e.attempts > 1 else ""
                 line = f"[{done}/{state.total}] {event.log.name}: {e.status}{retried}: {what} ({counts}; {per_min}, {xrt})"
             self.console.print(line, markup=False, highlight=False, soft_wrap=True)
-
-
-def _num(value, digits: int = 3) -> str:
-    return "–" if value is None else f"{value:.{digits}f}"
 
 
 def _report(state) -> None:

@@ -256,6 +256,7 @@ class BatchState:
     started_perf: float = field(default_factory=time.perf_counter)
     finished_at: float | None = None
     interrupted: bool = False
+    code: dict[str, Any] = field(default_factory=code_version)
 
     @property
     def total(self) -> int:
@@ -304,7 +305,7 @@ class BatchState:
             "export": self.spec.export,
             "report": self.spec.report,
             "config": self.config,
-            "code": code_version(),
+            "code": self.code,
             "machine": machine(),
             "cluster": self.cluster,
             "logs": [e.as_dict() for e in self.entry_list()],
@@ -338,6 +339,7 @@ def plan(spec: BatchSpec, state: BatchState) -> list[LogJob]:
             if summary is not None:
                 state.entries[log.name] = LogEntry(log, "skipped", summary=summary, batch=summary.get(BATCH_KEY) or {})
                 continue
+        (spec.out_dir(log) / ATTEMPTS).unlink(missing_ok=True)  # a count left by a driver that died
         jobs.append(LogJob(log, spec.out_dir(log), replace(options, log_path=log.path), state.config_hash,
                            export=spec.export, report=spec.report))
     return sorted(jobs, key=lambda job: -_size(job.log.path))
@@ -350,7 +352,7 @@ def _size(path: Path) -> int:
         return 0
 
 
-def entry_of(result: Any, spec: BatchSpec) -> LogEntry | None:
+def entry_of(result: Any) -> LogEntry | None:
     """A finished task's entry; ``None`` when the log was not run to its end (cancelled)."""
     job: LogJob = result.job
     if result.cancelled:
@@ -416,7 +418,7 @@ def run_batch(
 
     def finished(result) -> None:
         state.running.discard(result.job.log.name)
-        entry = entry_of(result, spec)
+        entry = entry_of(result)
         if entry is not None:
             state.entries[entry.log.name] = entry
         writer.write(state)
@@ -456,7 +458,8 @@ def write_fleet_outputs(state: BatchState) -> list[Path]:
     """``fleet.md``, ``fleet.html``, ``fleet.csv`` and ``fleet.parquet`` from the entries so far."""
     from lcv_replay.fleet import table
 
-    return table.write_fleet(state.spec.run_dir, table.rows_of_run(state.as_dict()), run=state.as_dict())
+    run = state.as_dict()
+    return table.write_fleet(state.spec.run_dir, table.rows_of_run(run), run=run)
 
 
 def load_run(run_dir: str | Path) -> dict[str, Any]:

@@ -300,6 +300,8 @@ def run(*, data_dir: Path, workdir: Path, out: Path, sequences: Sequence[str], a
 
 def markdown(doc: dict[str, Any]) -> str:
     """The tables of ``bench fleet``."""
+    from lcv_replay.fleet.table import fmt
+
     probe = doc["session_parallelism"]
     lines = ["## Scaling (batch wall time, fresh embedded cluster each, start-up excluded)", "",
              f"This session's parallelism before the runs: {probe['parallelism']:.2f} (the same busy loop in 2 processes "
@@ -319,9 +321,9 @@ def markdown(doc: dict[str, Any]) -> str:
     lines += ["## Per-log cost (1 worker, first round)", "", "| log | frames | log s | task s | CPU s | replay s | set-up s | rrd MB | FP | recall |",
               "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for x in first["logs"]:
-        lines.append(f"| {x['name']} | {x['frames']} | {_f(x['log_duration_s'], 0)} | {_f(x['task_s'], 2)} | {_f(x['cpu_s'], 2)} | "
-                     f"{_f(x['replay_s'], 2)} | {_f(x['setup_s'], 2)} | {_f((x['rrd_bytes'] or 0) / 1e6, 2)} | {x['false_positives']} | "
-                     f"{_f(x['recall'], 3)} |")
+        lines.append(f"| {x['name']} | {x['frames']} | {fmt(x['log_duration_s'], 0)} | {fmt(x['task_s'], 2)} | {fmt(x['cpu_s'], 2)} | "
+                     f"{fmt(x['replay_s'], 2)} | {fmt(x['setup_s'], 2)} | {fmt((x['rrd_bytes'] or 0) / 1e6, 2)} | {x['false_positives']} | "
+                     f"{fmt(x['recall'], 3)} |")
     o = doc["overheads"]
     lines += ["", "## Ray's overheads", "", "| what | value |", "|---|---:|",
               f"| start the embedded cluster (ray.init) | {o['startup_s']:.2f} s |",
@@ -354,10 +356,6 @@ def markdown(doc: dict[str, Any]) -> str:
             lines.append(f"| {p['workers']} | {_duration(p['wall_s'])} | {p['speedup']:.0f}x | {p['utilisation']:.0%} | {p['bottleneck']} |")
     lines += ["", f"load average during the bench: {', '.join(f'{x:.1f}' for x in doc['load_average'])} ({doc['cpus']} CPUs)"]
     return "\n".join(lines)
-
-
-def _f(value, digits: int) -> str:
-    return "–" if value is None else f"{value:.{digits}f}"
 
 
 def _duration(seconds: float) -> str:

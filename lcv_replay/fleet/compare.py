@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from lcv_replay.errors import FleetError
-from lcv_replay.fleet.table import FleetRow
+from lcv_replay.fleet.table import FleetRow, fmt
 
 COMPARE_MD, COMPARE_HTML = "compare.md", "compare.html"
 
@@ -248,14 +248,8 @@ def compare(a: RunFigures, b: RunFigures, tolerances: Tolerances | None = None) 
 
 
 # --------------------------------------------------------------------------------------- text
-def _f(value: Any, digits: int = 3) -> str:
-    if value is None:
-        return "–"
-    return f"{value:.{digits}f}" if isinstance(value, float) else str(value)
-
-
 def _arrow(a: Any, b: Any, digits: int = 3) -> str:
-    return _f(a, digits) if a == b else f"{_f(a, digits)} → {_f(b, digits)}"
+    return fmt(a, digits) if a == b else f"{fmt(a, digits)} → {fmt(b, digits)}"
 
 
 CHANGE_HEADER = ("log", "verdict", "FP", "recall", "ATE m", "replay s", "why")

@@ -3,20 +3,21 @@ and ``bench suite --workers``.
 
 * **Cluster.** Without an address, :class:`Cluster` starts an embedded local Ray sized to
   ``workers`` CPUs: no dashboard, every Ray process bound to 127.0.0.1 (Ray's own switch for
-  that, ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0``), Ray's token authentication on, a small object store;
-  it is shut down on exit. With ``address`` (``auto``, ``HOST:PORT`` or ``ray://HOST:PORT``) it
+  that, ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0``), Ray's token authentication on, a small object
+  store; it is shut down on exit. With ``address`` (``auto``, ``HOST:PORT`` or ``ray://HOST:PORT``) it
   joins an existing cluster, after a TCP check of the address that fails within
   :data:`CONNECT_TIMEOUT_S` instead of hanging. If the process already holds a Ray connection (a
   test fixture, a notebook), that connection is used and left open.
 * **Tasks.** Each job is one Ray task with its CPU needs declared (``num_cpus``) and the thread
-  pools inside capped to match (OpenMP, OpenBLAS, MKL, numexpr through the task's environment;
-  torch and OpenCV by :func:`cap_threads`), so N tasks on N cores do not oversubscribe. A worker
+  pools inside capped to match (OpenMP, OpenBLAS, MKL, numexpr through the job's environment;
+  torch and OpenCV by :func:`cap_threads`), so N tasks on N cores do not oversubscribe. On a
+  joined cluster the job also ships this process's ``lcv_replay`` and ``recorders`` packages. A worker
   that dies (SIGKILL, the OOM killer, a segfault) is retried by Ray up to ``max_retries`` times.
   Errors inside a task are the task's business: fleet tasks return them as data.
 * **Scheduling.** :meth:`Cluster.run` keeps at most :attr:`Cluster.capacity` tasks in flight
   (so "stop" means "submit no more" and the running count is the true one), reports each result
-  as it arrives, stops submitting when the stop token (:class:`lcv_replay.replay.StopToken`) is set (the first Ctrl-C), and on
-  ``KeyboardInterrupt`` (the second) cancels the running tasks: they come back as not run.
+  as it arrives, stops submitting when the stop token (:class:`lcv_replay.replay.StopToken`) is
+  set (the first Ctrl-C), and on ``KeyboardInterrupt`` (the second) cancels the running tasks.
 """
 
 from __future__ import annotations
@@ -247,13 +248,12 @@ class Cluster:
         """
         spec = self.spec
         target = None
-        if not spec.local:
-            kind, host, port = parse_address(spec.address)
-            target = auto_address() if kind == "auto" else spec.address
-            _, host, port = parse_address(target)
-            check_reachable(host, port, address=spec.address)
         if spec.local:
             _bind_local_ray_to_loopback()
+        else:
+            target = auto_address() if spec.address == "auto" else spec.address
+            _, host, port = parse_address(target)
+            check_reachable(host, port, address=spec.address)
         started = time.perf_counter()
         import ray
 
@@ -270,8 +270,6 @@ class Cluster:
                 else:
                     ray.init(address=target, log_to_driver=False, logging_level=logging.WARNING, namespace="lcv-replay",
                              runtime_env=self.runtime_env())
-            except FleetError:
-                raise
             except Exception as exc:  # Ray raises ConnectionError, RuntimeError, ValueError, ...
                 where = "start a local Ray cluster" if spec.local else f"join the Ray cluster at {spec.address}"
                 fix = "see 'ray status' and the Ray logs under /tmp/ray/session_latest/logs"

@@ -168,7 +168,8 @@ def aggregate(rows: Sequence[FleetRow], *, pending: int = 0, wall_time_s: float 
 
 
 # --------------------------------------------------------------------------------------- text
-def _f(value: Any, digits: int = 3) -> str:
+def fmt(value: Any, digits: int = 3) -> str:
+    """A figure for the text tables: floats with ``digits`` decimals, ``None`` as an en dash."""
     if value is None:
         return "–"
     if isinstance(value, float):
@@ -201,14 +202,14 @@ def aggregate_items(agg: FleetAggregate) -> list[tuple[str, str]]:
         ("logs with wrong loop closures", str(agg.logs_with_wrong)),
         ("accepted loops: true / false", f"{agg.true_positives} / {agg.false_positives}"),
         ("true loops missed", str(agg.false_negatives)),
-        ("pooled precision", _f(agg.pooled_precision)),
-        ("pooled recall", _f(agg.pooled_recall)),
-        ("ATE m: min / median / p90 / max", f"{_f(agg.ate_min_m, 2)} / {_f(agg.ate_median_m, 2)} / {_f(agg.ate_p90_m, 2)} / {_f(agg.ate_max_m, 2)} ({agg.ate_logs} logs with ground truth)"),
-        ("ATE / oracle: median / max", f"{_f(agg.ate_over_oracle_median, 2)} / {_f(agg.ate_over_oracle_max, 2)}"),
+        ("pooled precision", fmt(agg.pooled_precision)),
+        ("pooled recall", fmt(agg.pooled_recall)),
+        ("ATE m: min / median / p90 / max", f"{fmt(agg.ate_min_m, 2)} / {fmt(agg.ate_median_m, 2)} / {fmt(agg.ate_p90_m, 2)} / {fmt(agg.ate_max_m, 2)} ({agg.ate_logs} logs with ground truth)"),
+        ("ATE / oracle: median / max", f"{fmt(agg.ate_over_oracle_median, 2)} / {fmt(agg.ate_over_oracle_max, 2)}"),
         ("log time (done logs)", f"{agg.log_duration_s:.1f} s"),
         ("replay time (this run, sum over logs)", f"{agg.replay_time_s:.1f} s"),
         ("batch wall time", "–" if agg.wall_time_s is None else f"{agg.wall_time_s:.1f} s"),
-        ("corpus × real time", _f(agg.x_real_time, 1)),
+        ("corpus × real time", fmt(agg.x_real_time, 1)),
     ]
 
 
@@ -228,9 +229,9 @@ def _open_target(row: FleetRow, run_dir: Path | None) -> str | None:
 def table_cells(k: int, row: FleetRow) -> list[Any]:
     return [
         k, row.name, row.status if row.attempts is None or row.attempts <= 1 else f"{row.status} ({row.attempts} attempts)",
-        _f(row.false_positives), _f(row.true_positives), _f(row.false_negatives), _f(row.precision), _f(row.recall),
-        _f(row.ate_rmse_m, 2), _f(row.ate_over_oracle, 2), _f(row.frames), _f(row.log_duration_s, 1),
-        _f(row.wall_time_s, 1), _f(row.x_real_time, 0),
+        fmt(row.false_positives), fmt(row.true_positives), fmt(row.false_negatives), fmt(row.precision), fmt(row.recall),
+        fmt(row.ate_rmse_m, 2), fmt(row.ate_over_oracle, 2), fmt(row.frames), fmt(row.log_duration_s, 1),
+        fmt(row.wall_time_s, 1), fmt(row.x_real_time, 0),
     ]
 
 

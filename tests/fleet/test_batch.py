@@ -173,3 +173,22 @@ def test_a_killed_worker_is_retried_or_reported(ray_cluster, fleet_logs, slow_lo
         assert entry["status"] == "failed" and "worker process died" in entry["error"], entry
         assert not (run_dir / "logs" / "slow").exists()
     assert _temp_files(run_dir) == []
+
+
+def test_a_second_ctrl_c_cancels_the_running_logs_cleanly(ray_cluster, fleet_logs, slow_log, tmp_path):
+    run_dir = tmp_path / "run"
+    spec = _spec(fleet_logs, run_dir, logs=[slow_log, fleet_logs.logs[0]])  # the larger (slow) one goes first
+
+    def on_event(event):
+        if event.kind == "started" and event.log.name == "slow":
+            deadline = time.monotonic() + 60
+            while not (run_dir / "logs" / "slow" / ATTEMPTS).exists() and time.monotonic() < deadline:
+                time.sleep(0.01)  # until the replay runs in its worker
+            raise KeyboardInterrupt  # what the second Ctrl-C raises in the driver
+
+    state = run_batch(spec, ray_cluster, on_event=on_event)
+    run = json.loads((run_dir / "run.json").read_text())
+    assert state.interrupted and run["interrupted"] and run["logs"] == []
+    assert sorted(Path(p).name for p in run["pending"]) == ["route0.mcap", "slow.mcap"]
+    assert not (run_dir / "logs" / "slow").exists()  # cancelled: nothing half-written, not even its folder
+    assert (run_dir / "fleet.md").is_file() and _temp_files(run_dir) == []
