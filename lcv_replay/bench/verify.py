@@ -18,9 +18,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from lcv_replay.errors import LogFormatError, VerificationError
+from lcv_replay.errors import LogFormatError
 from lcv_replay.evaluation.metrics import Metrics, evaluate
-from lcv_replay.evaluation.truth import LoopTruth, loop_truth
+from lcv_replay.evaluation.truth import ConstraintTruth, LoopTruth, choose_truth_source, loop_truth, provide_truth
 from lcv_replay.records import LoopCandidate, Pose2D
 from lcv_replay.verification.base import VerificationResult, VerifierStep
 from lcv_replay.verification.config import VerificationConfig
@@ -62,6 +62,11 @@ class LogInputs:
     def truth_of(self, pairs: Sequence[tuple[int, int]], radius_m: float) -> LoopTruth:
         """Truth of ``pairs``: labels, else ground truth closer than ``radius_m``, else unknown."""
         return loop_truth(pairs, true_pairs=self.true_pairs, ground_truth=self.ground_truth, radius_m=radius_m)
+
+    def constraint_truth(self, radius_m: float) -> ConstraintTruth:
+        """The same rule as :meth:`truth_of`, as the judge a replay of the log's candidates uses."""
+        source = choose_truth_source("log", has_labels=self.true_pairs is not None, has_ground_truth=self.ground_truth is not None)
+        return ConstraintTruth(source, self.true_pairs, self.ground_truth, radius_m)
 
 
 def load_inputs(reader_or_path: Any, *, require_candidates: bool = True) -> LogInputs:
@@ -218,22 +223,13 @@ def verify_inputs(
             singular information matrix, ...
     """
     from lcv_replay.config import to_dict
-    from lcv_replay.verification.baselines import needs_truth
     from lcv_replay.verification.registry import make_verifier
 
     config = config or VerificationConfig()
     if seed is not None:
         config = dataclasses.replace(config, seed=seed)
     verifier = make_verifier(method, config, odometry_information=inputs.odometry_information)
-    if needs_truth(verifier):
-        candidate_truth = inputs.truth_of([c.pair for c in inputs.candidates], config.consistency_radius_m)
-        if not candidate_truth.known:
-            raise VerificationError(
-                f"method '{method}' needs the log's true loops, but the log has neither labels nor ground truth",
-                path=inputs.path,
-                fix="record the log with --true-loops or --ground-truth, or choose another method",
-            )
-        verifier.set_true_pairs(inputs.candidates[i].pair for i in candidate_truth.true_ids)
+    provide_truth(verifier, inputs.constraint_truth(config.consistency_radius_m), method=method, path=inputs.path)
 
     started, started_cpu = time.perf_counter(), time.process_time()
     result, steps, window_times = feed(verifier, inputs, on_step=on_step)

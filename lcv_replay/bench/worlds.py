@@ -47,6 +47,7 @@ from typing import Literal
 
 import numpy as np
 
+from lcv_replay import se2
 from lcv_replay.errors import ConfigError
 
 Layout = Literal["grid", "ring"]
@@ -285,22 +286,8 @@ def _noise(rng: np.random.Generator, sigmas: np.ndarray, count: int, model: Nois
     return z
 
 
-def _se2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    from lcv_replay.verification.pose_graph import se2_compose
-
-    return se2_compose(a, b)
-
-
-def _se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    from lcv_replay.verification.pose_graph import se2_between
-
-    return se2_between(a, b)
-
-
 def generate_world(spec: WorldSpec) -> World:
     """The world of ``spec`` (deterministic)."""
-    from recorders.common import compose_chain
-
     rng = np.random.default_rng([spec.seed, WORLD_VERSION, LAYOUTS.index(spec.layout), ALL_NOISE_MODELS.index(spec.noise), spec.poses])
     network = _network(spec)
     path = _walk(network, (spec.poses + 2) * spec.step_m, rng, ring_layout=spec.layout == "ring")
@@ -308,9 +295,9 @@ def generate_world(spec: WorldSpec) -> World:
 
     odo_sigmas = np.asarray(spec.odometry_sigmas, dtype=np.float64)
     loop_sigmas = np.asarray(spec.loop_sigmas, dtype=np.float64)
-    steps = _se2_between(truth[:-1], truth[1:])
-    noisy = _se2_compose(steps, _noise(rng, odo_sigmas, len(steps), spec.noise))
-    odometry = compose_chain(noisy, truth[0])
+    steps = se2.between(truth[:-1], truth[1:])
+    noisy = se2.compose(steps, _noise(rng, odo_sigmas, len(steps), spec.noise))
+    odometry = se2.compose_chain(noisy, truth[0])
 
     # revisits: nearest earlier frame at least min_loop_gap_frames older, within the radius
     from scipy.spatial import cKDTree
@@ -323,8 +310,8 @@ def generate_world(spec: WorldSpec) -> World:
             d = np.linalg.norm(truth[older, :2] - truth[q, :2], axis=1)
             pairs.append((q, older[int(np.argmin(d))]))
     loops = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    relative = _se2_between(truth[loops[:, 1]], truth[loops[:, 0]])
-    measured = _se2_compose(relative, _noise(rng, loop_sigmas, len(loops), spec.noise))
+    relative = se2.between(truth[loops[:, 1]], truth[loops[:, 0]])
+    measured = se2.compose(relative, _noise(rng, loop_sigmas, len(loops), spec.noise))
 
     odo_factor, loop_factor = np.ones(3), np.ones(3)
     low, high = np.log(MISDECLARED_RANGE)
@@ -351,7 +338,7 @@ def write_world(world: World, folder: str | Path) -> tuple[Path, Path]:
     """Write ``<name>.g2o`` (odometry vertices, chain and loop edges) and ``<name>_gt.g2o``
     (ground-truth vertices) into ``folder`` atomically; returns both paths."""
     from lcv_replay.fileio import write_text_atomic
-    from lcv_replay.verification.pose_graph import odometry_between
+    from lcv_replay.verification.measurements import odometry_between
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

@@ -3,7 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
+
+from lcv_replay.errors import require
+
+if TYPE_CHECKING:  # pragma: no cover
+    import numpy as np
 
 
 @dataclass(frozen=True)
@@ -22,8 +27,6 @@ class BaselineConfig:
     max_iterations: int = 100  # Levenberg-Marquardt / GNC iteration cap
 
     def __post_init__(self) -> None:
-        from lcv_replay.config import require
-
         require(self.accept_chi2 > 0, "verification.baselines.accept_chi2", self.accept_chi2, "a number > 0")
         require(self.dcs_phi > 0, "verification.baselines.dcs_phi", self.dcs_phi, "a number > 0")
         require(self.gm_c > 0, "verification.baselines.gm_c", self.gm_c, "a number > 0")
@@ -59,8 +62,6 @@ class IlvPlusConfig:
     frontier_min_loops: int = 3  # a smaller cluster beyond every accepted loop waits one window for support (decided at the end of the log)
 
     def __post_init__(self) -> None:
-        from lcv_replay.config import require
-
         require(self.gate_chi2 > 0, "verification.ilv_plus.gate_chi2", self.gate_chi2, "a number > 0")
         require(self.min_loop_gap_frames >= 0, "verification.ilv_plus.min_loop_gap_frames", self.min_loop_gap_frames, "an integer >= 0")
         require(self.calibration_min_loops >= 10, "verification.ilv_plus.calibration_min_loops", self.calibration_min_loops, "an integer >= 10")
@@ -87,14 +88,12 @@ class VerificationConfig:
     # Pose-graph noise where the input carries none (not in the paper; g2o logs carry both):
     odometry_sigmas: tuple[float, float, float] = (0.05, 0.05, 0.002)  # per-frame odometry sigma [m, m, rad], ~libviso2 at 10 Hz
     loop_sigmas: tuple[float, float, float] = (2.0, 2.0, 0.2)  # identity "same place" loop [m, m, rad]: same place, not same pose (sec. II-A)
-    top_k_trajectories: int = 3  # trajectories of the top-ranked hypotheses carried by each step (for sinks)
+    top_k_trajectories: int = 10  # trajectories of the top-ranked hypotheses carried by each step (for sinks: the map and the paper's Fig. V)
     max_iterations: int = 100  # Levenberg-Marquardt iteration cap per hypothesis
     ilv_plus: IlvPlusConfig = field(default_factory=IlvPlusConfig)  # the improved verifier
     baselines: BaselineConfig = field(default_factory=BaselineConfig)  # baseline verifiers
 
     def __post_init__(self) -> None:
-        from lcv_replay.config import require
-
         require(self.consistency_radius_m > 0, "verification.consistency_radius_m", self.consistency_radius_m, "a number > 0")
         require(self.window_frames >= 1, "verification.window_frames", self.window_frames, "an integer >= 1")
         require(self.iterations_per_window >= 1, "verification.iterations_per_window", self.iterations_per_window, "an integer >= 1")

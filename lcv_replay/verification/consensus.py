@@ -65,13 +65,22 @@ import numpy as np
 
 from lcv_replay.errors import VerificationError
 from lcv_replay.records import LoopCandidate, Pose2D
+from lcv_replay import se2
 from lcv_replay.verification import pose_graph
-from lcv_replay.verification.base import Constraint, HypothesisSummary, VerificationResult, VerifierStep
-from lcv_replay.verification.baselines import ConstraintHistory, checked_frame, default_informations
+from lcv_replay.verification.base import (
+    Constraint,
+    ConstraintHistory,
+    HypothesisSummary,
+    VerificationResult,
+    VerifierStep,
+    checked_frame,
+    default_informations,
+)
 from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.consistency import Cycles, connected_labels, mahalanobis_d2, neighbour_pairs, position_consistent
 from lcv_replay.verification.noise_scale import NoiseFit, fit_noise_quantiles
-from lcv_replay.verification.pose_graph import IncrementalGraph, LoopFactor, OdometryChain, OptimisationFailed
+from lcv_replay.verification.measurements import OdometryChain, odometry_between
+from lcv_replay.verification.pose_graph import IncrementalGraph, LoopFactor, OptimisationFailed
 
 log = logging.getLogger(__name__)
 
@@ -382,7 +391,7 @@ class ConsensusVerifier:
         ids = np.asarray(ids, dtype=np.int64)
         if len(ids) == 0:
             return np.zeros(0)
-        return pose_graph.between_chi2(x, self._m[ids], self._q[ids], self._z[ids], self._info[ids]) / self.loop_scale
+        return se2.between_chi2(x, self._m[ids], self._q[ids], self._z[ids], self._info[ids]) / self.loop_scale
 
     def _chi2_total(self) -> float:
         """Chi-square of the working hypothesis at its solution (odometry and accepted loops)."""
@@ -391,7 +400,7 @@ class ConsensusVerifier:
             return self._chi2_cache[1]
         x = self.graph.estimate()
         n = len(x)
-        odometry = pose_graph.between_chi2(x, np.arange(n - 1), np.arange(1, n), pose_graph.odometry_between(self.chain.poses[:n]), self.chain.information) / self.odometry_scale
+        odometry = se2.between_chi2(x, np.arange(n - 1), np.arange(1, n), odometry_between(self.chain.poses[:n]), self.chain.information) / self.odometry_scale
         total = float(odometry.sum() + self._residual_chi2(x, np.fromiter(self.graph.loop_ids, dtype=np.int64)).sum())
         self._chi2_cache = (key, total)
         return total
@@ -438,7 +447,7 @@ class ConsensusVerifier:
                 base = grown[anchor]
             grown[anchor] = base
         frames = np.arange(start, n)
-        transport = pose_graph.se2_adjoint_inverse(pose_graph.se2_between(self.chain.poses[anchor], self.chain.poses[frames]))
+        transport = se2.adjoint_inverse(se2.between(self.chain.poses[anchor], self.chain.poses[frames]))
         grown[frames] = transport @ base @ np.swapaxes(transport, -1, -2) + self.odometry_scale * self.chain.segment_covariance(np.full(len(frames), anchor), frames)
         self._marginal = grown
 
@@ -459,10 +468,10 @@ class ConsensusVerifier:
         self._remember_marginals()
         x = self.graph.estimate()
         m, q = self._m[ids], self._q[ids]
-        r = pose_graph.between_residuals(x, m, q, self._z[ids])
+        r = se2.between_residuals(x, m, q, self._z[ids])
         loop_cov = self.loop_scale * self._cov[ids]
         odometry = mahalanobis_d2(r, loop_cov + self.odometry_scale * self.chain.segment_covariance(m, q))
-        transport = pose_graph.se2_adjoint_inverse(pose_graph.se2_between(x[m], x[q]))
+        transport = se2.adjoint_inverse(se2.between(x[m], x[q]))
         marginals = 2.0 * (self._marginal[q] + transport @ self._marginal[m] @ np.swapaxes(transport, -1, -2))
         bound = np.maximum(odometry, mahalanobis_d2(r, loop_cov + marginals))
         far = bound >= self.SCREEN_GATES * self.gate_chi2
@@ -642,8 +651,8 @@ class ConsensusVerifier:
                     self._fresh_marginals.add(frame)
         except OptimisationFailed:
             return False
-        r = pose_graph.between_residuals(x, m, q, self._z[members])
-        transport = pose_graph.se2_adjoint_inverse(pose_graph.se2_between(x[m], x[q]))
+        r = se2.between_residuals(x, m, q, self._z[members])
+        transport = se2.adjoint_inverse(se2.between(x[m], x[q]))
         loose = self.loop_scale * self._cov[members] + 2.0 * (self._marginal[q] + transport @ self._marginal[m] @ np.swapaxes(transport, -1, -2))
         return bool(np.all(mahalanobis_d2(r, loose) >= self.gate_chi2))
 
@@ -805,9 +814,9 @@ class ConsensusVerifier:
         top = np.argsort(rise)[::-1][: self.STRAIN_TOP]
         strained = set(accepted[top[rise[top] > gate]].tolist())
         n = min(len(x_before), len(x_after))
-        steps = pose_graph.odometry_between(self.chain.poses[:n])
+        steps = odometry_between(self.chain.poses[:n])
         idx = np.arange(n - 1)
-        bend = (pose_graph.between_chi2(x_after, idx, idx + 1, steps, self.chain.information) - pose_graph.between_chi2(x_before, idx, idx + 1, steps, self.chain.information)) / self.odometry_scale
+        bend = (se2.between_chi2(x_after, idx, idx + 1, steps, self.chain.information) - se2.between_chi2(x_before, idx, idx + 1, steps, self.chain.information)) / self.odometry_scale
         top = np.argsort(bend)[::-1][: self.STRAIN_TOP]
         bent = np.sort(top[bend[top] > gate])
         span = self.plus.cluster_span_frames
@@ -1084,7 +1093,7 @@ class ConsensusVerifier:
             remaining = 0.5 * (remaining + remaining.T)
             if np.min(np.linalg.eigvalsh(remaining)) <= 1e-9 * self.loop_scale * np.trace(self._cov[c]):
                 continue  # the only evidence for its relative pose: nothing to test it against
-            r = pose_graph.between_residuals(x, self._m[[c]], self._q[[c]], self._z[[c]])
+            r = se2.between_residuals(x, self._m[[c]], self._q[[c]], self._z[[c]])
             if mahalanobis_d2(r, remaining[None])[0] >= self.gate_chi2:
                 out.append(c)
         if out:

@@ -218,11 +218,11 @@ class ConsistencyTable:
 def _segment(chain, a: np.ndarray, b: np.ndarray, prefix: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Odometry ``O_a⁻¹ O_b`` ``(K, 3)`` and its covariance ``(K, 3, 3)`` (right perturbation) for
     any order of ``a`` and ``b`` (zero for ``a == b``); ``prefix`` as in
-    :meth:`~lcv_replay.verification.pose_graph.OdometryChain.segment_covariance`."""
-    from lcv_replay.verification.pose_graph import se2_adjoint, se2_between
+    :meth:`~lcv_replay.verification.measurements.OdometryChain.segment_covariance`."""
+    from lcv_replay import se2
 
     odom = chain.poses
-    rel = se2_between(odom[a], odom[b])
+    rel = se2.between(odom[a], odom[b])
     lo, hi = np.minimum(a, b), np.maximum(a, b)
     cov = np.zeros((len(a), 3, 3))
     moving = lo < hi
@@ -230,7 +230,7 @@ def _segment(chain, a: np.ndarray, b: np.ndarray, prefix: np.ndarray | None = No
         cov[moving] = chain.segment_covariance(lo[moving], hi[moving], prefix)
     backwards = b < a  # O_a⁻¹ O_b = (O_b⁻¹ O_a)⁻¹: right perturbation Exp(-Ad(O_b⁻¹ O_a) ε)
     if backwards.any():
-        ad = se2_adjoint(se2_between(odom[b[backwards]], odom[a[backwards]]))
+        ad = se2.adjoint(se2.between(odom[b[backwards]], odom[a[backwards]]))
         cov[backwards] = ad @ cov[backwards] @ np.swapaxes(ad, -1, -2)
     return rel, cov
 
@@ -246,25 +246,25 @@ class Cycles:
     odometry between their ends enters, so for nearby loops the test is tight and cheap.
 
     Args:
-        chain: the :class:`~lcv_replay.verification.pose_graph.OdometryChain`.
+        chain: the :class:`~lcv_replay.verification.measurements.OdometryChain`.
         match, query: ``(m1, m2)`` and ``(q1, q2)``, each ``(K,)`` frame indices.
         measured: ``(Ẑ1, Ẑ2)``, each ``(K, 3)`` ``T_match_query``.
     """
 
     def __init__(self, chain, match, query, measured):
-        from lcv_replay.verification.pose_graph import se2_adjoint_inverse, se2_between, se2_compose, se2_logmap
+        from lcv_replay import se2
 
         self.chain = chain
         self.m1, self.m2 = (np.asarray(v, dtype=np.int64) for v in match)
         self.q1, self.q2 = (np.asarray(v, dtype=np.int64) for v in query)
         z1, z2 = (np.asarray(v, dtype=np.float64).reshape(-1, 3) for v in measured)
         odom = chain.poses
-        a = se2_between(odom[self.m1], odom[self.m2])
-        b = se2_between(odom[self.q1], odom[self.q2])
-        predicted = se2_compose(se2_between(a, z1), b)  # A⁻¹ Z1 B
-        self.error = se2_logmap(se2_between(z2, predicted))  # (K, 3)
-        self._ad_r1 = se2_adjoint_inverse(b)  # Ad(B⁻¹)
-        self._ad_a = se2_adjoint_inverse(predicted)  # Ad(B⁻¹ Z1⁻¹ A) = Ad((A⁻¹ Z1 B)⁻¹)
+        a = se2.between(odom[self.m1], odom[self.m2])
+        b = se2.between(odom[self.q1], odom[self.q2])
+        predicted = se2.compose(se2.between(a, z1), b)  # A⁻¹ Z1 B
+        self.error = se2.logmap(se2.between(z2, predicted))  # (K, 3)
+        self._ad_r1 = se2.adjoint_inverse(b)  # Ad(B⁻¹)
+        self._ad_a = se2.adjoint_inverse(predicted)  # Ad(B⁻¹ Z1⁻¹ A) = Ad((A⁻¹ Z1 B)⁻¹)
 
     def __len__(self) -> int:
         return len(self.error)
@@ -273,7 +273,7 @@ class Cycles:
         """``(K, 3, 3)`` covariance of the errors for loop covariances ``(R1, R2)`` (each
         ``(K, 3, 3)``, or ``None`` for exact loops) and the odometry step covariance whose prefix
         sums are ``odometry_prefix`` (``None``: the chain's own; see
-        :func:`~lcv_replay.verification.pose_graph.random_walk_prefix`). Linear in both."""
+        :func:`~lcv_replay.verification.measurements.random_walk_prefix`). Linear in both."""
         _, cov_a = _segment(self.chain, self.m1, self.m2, odometry_prefix)
         _, cov_b = _segment(self.chain, self.q1, self.q2, odometry_prefix)
         t = np.swapaxes

@@ -23,13 +23,12 @@ from typing import Sequence
 import numpy as np
 
 from lcv_replay.verification import pose_graph
-from lcv_replay.verification.base import Constraint
-from lcv_replay.verification.baselines import ConstraintHistory
+from lcv_replay.verification.base import Constraint, ConstraintHistory
 from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.consistency import position_consistent
 from lcv_replay.verification.hypotheses import Hypothesis
 from lcv_replay.verification.incremental import IncrementalVerifier
-from lcv_replay.verification.pose_graph import OdometryChain
+from lcv_replay.verification.measurements import OdometryChain
 from lcv_replay.verification.registry import register
 
 

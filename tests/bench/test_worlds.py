@@ -10,7 +10,7 @@ import pytest
 from lcv_replay.bench.suites import BUILTIN_SUITES, SuiteCase, load_suite_file, with_seeds, world_cases
 from lcv_replay.bench.worlds import MISDECLARED_RANGE, WorldSpec, generate_world, write_world
 from lcv_replay.errors import ConfigError
-from lcv_replay.verification.pose_graph import se2_between, se2_logmap
+from lcv_replay.se2 import between as se2_between, logmap as se2_logmap
 
 
 @pytest.mark.parametrize("layout", ["grid", "ring"])

@@ -11,7 +11,7 @@ import pytest
 from lcv_replay.records import LoopCandidate, Pose2D
 from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.consensus import ConsensusVerifier, Fate
-from lcv_replay.verification.pose_graph import se2_between, se2_compose
+from lcv_replay.se2 import between as se2_between, compose as se2_compose
 from lcv_replay.verification.registry import make_verifier
 from tests.verification.ilv_synthetic import ODOM_INFORMATION, circle_world
 from tests.verification.test_incremental import candidates_by_query, feed_frames

@@ -9,8 +9,8 @@ import pytest
 
 from lcv_replay.records import LoopCandidate, Pose2D
 from lcv_replay.verification.config import VerificationConfig
+from lcv_replay import se2
 from lcv_replay.verification.base import Constraint
-from lcv_replay.verification.pose_graph import se2_between
 from lcv_replay.verification.registry import available_methods, make_verifier
 from tests.conftest import shared_path
 from tests.verification.ilv_synthetic import ODOM_INFORMATION, circle_world
@@ -22,7 +22,7 @@ MEASURED_INFORMATION = (100.0, 0.0, 0.0, 100.0, 0.0, 10000.0)
 
 def _measured(world, query: int, match: int) -> LoopCandidate:
     """A candidate carrying the true relative pose, as robustslam_kitti's true loops do."""
-    rel = se2_between(world.truth[match], world.truth[query])
+    rel = se2.between(world.truth[match], world.truth[query])
     return LoopCandidate(query, match, T_match_query=Pose2D(*rel), information=MEASURED_INFORMATION, source="synthetic")
 
 
@@ -85,6 +85,7 @@ def test_leave_one_out_of_the_working_graph_equals_the_chi2_drop_of_removing_the
     loop at the open end of the trajectory that fits the solution holding it."""
     from lcv_replay.verification import pose_graph as pg
     from lcv_replay.verification.consistency import mahalanobis_d2
+    from lcv_replay.verification.measurements import loop_chi2
 
     world = circle_world(num_false=0, yaw_bias_rad=0.0005)
     n = len(world.odom)
@@ -105,11 +106,11 @@ def test_leave_one_out_of_the_working_graph_equals_the_chi2_drop_of_removing_the
     x = graph.estimate()
     for c in (0, 3, len(loops) - 1):
         f = factors[c]
-        r = pg.between_residuals(x, np.array([f.match_frame]), np.array([f.query_frame]), f.measured[None])
+        r = se2.between_residuals(x, np.array([f.match_frame]), np.array([f.query_frame]), f.measured[None])
         remaining = np.linalg.inv(f.information) - graph.relative_covariance(f.match_frame, f.query_frame)
         statistic = mahalanobis_d2(r, remaining[None])[0]
         assert statistic == pytest.approx(everything - chi2_without(c), rel=0.05, abs=0.3)
-    assert pg.loop_chi2(x, constraints[-1], ODOM_INFORMATION) < 11.34  # it fits the solution holding it ...
+    assert loop_chi2(x, constraints[-1], ODOM_INFORMATION) < 11.34  # it fits the solution holding it ...
     assert everything - chi2_without(len(loops) - 1) > 11.34  # ... but not the others
 
 
