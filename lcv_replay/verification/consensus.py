@@ -157,6 +157,7 @@ class ConsensusVerifier:
         self.loop_scale = 1.0
         self.odometry_scale = 1.0
         self._retired_updates = 0
+        self._scales_fitted_on = 0  # cycles the last variance-component fit used
         # the bank of pairwise cycles inside clusters: constraint ids (P, 2), errors (P, 3), and
         # the declared loop and odometry parts of their covariance (P, 3, 3) each
         self._pair_ids = np.zeros((0, 2), dtype=np.int64)
@@ -170,6 +171,7 @@ class ConsensusVerifier:
         self._cov = np.zeros((0, 3, 3))
         self._info = np.zeros((0, 3, 3))
         self._fate = np.zeros(0, dtype=np.int8)
+        self._bound = np.zeros(0)  # per constraint: its last screening bound on the innovation
         self._cluster_of = np.zeros(0, dtype=np.int64)
         self._marginal = np.zeros((0, 3, 3))  # per frame: its marginal covariance when it was new (an upper bound since)
         self._fresh_marginals: set[int] = set()  # frames whose marginal was refreshed in this window
@@ -292,6 +294,8 @@ class ConsensusVerifier:
         self._audit()
         if final:
             self._retry_near_misses()
+            if np.any(self._fate == Fate.PENDING):  # sent back to the pool in this last window
+                self._verify(self._form_clusters(self._screen()), final=True)
         timings["refine"] = time.perf_counter() - t
 
 
@@ -373,6 +377,7 @@ class ConsensusVerifier:
         self._cov = np.concatenate([self._cov, np.linalg.inv(info)])
         gap_ok = (self._q[start:] - self._m[start:]) >= self.plus.min_loop_gap_frames
         self._fate = np.concatenate([self._fate, np.where(gap_ok, Fate.PENDING, Fate.INELIGIBLE).astype(np.int8)])
+        self._bound = np.concatenate([self._bound, np.zeros(len(factors))])
         self._cluster_of = np.concatenate([self._cluster_of, np.full(len(factors), -1, dtype=np.int64)])
 
     def _updates(self) -> int:
@@ -475,6 +480,7 @@ class ConsensusVerifier:
         marginals = 2.0 * (self._marginal[q] + transport @ self._marginal[m] @ np.swapaxes(transport, -1, -2))
         bound = np.maximum(odometry, mahalanobis_d2(r, loop_cov + marginals))
         far = bound >= self.SCREEN_GATES * self.gate_chi2
+        self._bound[ids] = bound
         self._fate[ids[far]] = Fate.SCREENED
         self._fate[ids[~far]] = Fate.PENDING
         return ids[~far]
@@ -565,7 +571,9 @@ class ConsensusVerifier:
            (its innovation is at most those residuals).
         3. The others are tried together (:meth:`_joint`); the clusters that do not fit the joint
            solution are set aside, and the rest are tried together again.
-        4. What is left is tried cluster by cluster, largest first (:meth:`_trial`)."""
+        4. What is left is tried cluster by cluster, largest first (:meth:`_trial`); a cluster
+           that fails is tried without its members that do not fit the failed solution, which go
+           back to the pool."""
         accepted = self._ids(Fate.ACCEPTED)
         frontier = int(self._q[accepted].max()) if len(accepted) else -1
         deferred: list[int] = []
@@ -587,8 +595,14 @@ class ConsensusVerifier:
             self._join(np.asarray(deferred, dtype=np.int64))
         # corroborated clusters together first; then the single loops, many of which now pass at
         # the new solution without a solve
-        several = [c for c in remaining if len(self._pending_members(c)) > 1]
-        remaining = self._joint_bisect(several) + self._shortcut([c for c in remaining if len(self._pending_members(c)) == 1])
+        # (a cluster whose every member is beyond one gate even under the loose screening bound
+        # cannot pass alone; it is left to the one-by-one path, which first checks it against
+        # current marginals, and kept out of the joint try, which it would spoil)
+        beyond = [c for c in remaining if np.all(self._bound[self._pending_members(c)] >= self.gate_chi2)]
+        several = [c for c in remaining if len(self._pending_members(c)) > 1 and c not in beyond]
+        singles = [c for c in remaining if len(self._pending_members(c)) == 1 and c not in beyond]
+        remaining = self._joint_bisect(several) + self._shortcut(singles) + beyond
+        remaining.sort(key=lambda c: (-len(self._pending_members(c)), int(self._q[self._pending_members(c)].min()) if len(self._pending_members(c)) else 0, c.id))
         losers = []
         for cluster in remaining:
             members = self._pending_members(cluster)
@@ -598,8 +612,9 @@ class ConsensusVerifier:
             ok, opponents = self._trial(members)
             fit = self.last_fit
             if not ok and fit is not None and 0 < fit.sum() < len(members):
-                # a cluster formed under a looser gate may mix loops: the part that fits is tried alone
-                cluster = self._split(cluster, members[~fit])
+                # a cluster formed under a looser gate may mix loops: the part that fits is tried
+                # alone; the others go back to the pool, to be clustered and verified again
+                self._release(cluster, members[~fit])
                 members = self._pending_members(cluster)
                 ok, opponents = self._trial(members)
             if ok:
@@ -755,6 +770,7 @@ class ConsensusVerifier:
             step = self._chi2_total() - before
             x_step = self.graph.estimate()
             if step >= self.GROSS_FACTOR * gate_k:
+                self.last_fit = self._residual_chi2(x_step, members) < self.gate_chi2
                 opponents = self._opponents(x_before, x_step, exclude=members)
                 self._apply(remove=members, relinearize=False)
                 return False, opponents
@@ -867,13 +883,20 @@ class ConsensusVerifier:
                 continue
             largest = np.bincount(labels).argmax()
             leaving = accepted[labels != largest]
-            cluster.members = cluster.members[~np.isin(cluster.members, leaving)]
-            cluster.pairs = cluster.pairs[np.all(np.isin(self._pair_ids[cluster.pairs], cluster.members), axis=1)]
-            self._cluster_of[leaving] = -1
-            self._fate[leaving] = Fate.PENDING
+            self._release(cluster, leaving)
             out.extend(leaving.tolist())
         if out:
             self._apply(remove=out)
+
+    def _release(self, cluster: Cluster, leaving: np.ndarray) -> None:
+        """``leaving`` (members of ``cluster``, out of the graph or about to be) go back to the
+        pool: PENDING and in no cluster, to be clustered and verified again at the next window (or
+        at once at the end of the log)."""
+        leaving = np.asarray(leaving, dtype=np.int64)
+        cluster.members = cluster.members[~np.isin(cluster.members, leaving)]
+        cluster.pairs = cluster.pairs[np.all(np.isin(self._pair_ids[cluster.pairs], cluster.members), axis=1)]
+        self._cluster_of[leaving] = -1
+        self._fate[leaving] = Fate.PENDING
 
     def _split(self, cluster: Cluster, leaving: np.ndarray) -> Cluster:
         """Move ``leaving`` (members of ``cluster``) into a new cluster (they keep their fate);
@@ -1062,9 +1085,7 @@ class ConsensusVerifier:
             if opponents:
                 self._contest(opponents, {worst}, contests)
             else:
-                self._fate[members] = Fate.PENDING  # back to the pool: clustered and verified again
-                self._cluster_of[members] = -1
-                self.clusters[worst].members = self.clusters[worst].members[~np.isin(self.clusters[worst].members, members)]
+                self._release(self.clusters[worst], members)
 
     #: Accepted loops audited per window (:meth:`_audit`), the least well fitting first.
     AUDITS_PER_WINDOW = 10
@@ -1099,34 +1120,35 @@ class ConsensusVerifier:
         if out:
             self._apply(remove=out)
             for c in out:
-                cluster = self.clusters.get(int(self._cluster_of[c]))
-                if cluster is not None:
-                    cluster.members = cluster.members[cluster.members != c]
-                    cluster.pairs = cluster.pairs[np.all(self._pair_ids[cluster.pairs] != c, axis=1)]
-            self._fate[out] = Fate.PENDING
-            self._cluster_of[out] = -1
+                self._release(self.clusters[int(self._cluster_of[c])], np.array([c]))
 
     #: At the end of the log, a refused cluster whose innovation was within this many gates is
     #: tried once more against the final hypothesis (which holds every loop accepted since).
     NEAR_MISS = 20.0
 
     def _retry_near_misses(self) -> None:
-        """At the end of the log, try once more the clusters refused by a solve with an innovation
-        within :data:`NEAR_MISS` gates, largest first: the hypothesis they were refused by held
-        fewer loops than the final one."""
+        """At the end of the log, try once more the refused loops of the clusters refused by a
+        solve with an innovation within :data:`NEAR_MISS` gates, largest first (the hypothesis
+        they were refused by held fewer loops than the final one); a cluster that fails again is
+        split into the members that fit and the others, and the first are tried alone."""
         retry = [
             self.clusters[c] for c, ratio in self._near_misses.items()
-            if ratio < self.NEAR_MISS and np.all(self._fate[self.clusters[c].members] == Fate.REJECTED)
+            if ratio < self.NEAR_MISS and c in self.clusters and np.any(self._fate[self.clusters[c].members] == Fate.REJECTED)
         ]
         for cluster in sorted(retry, key=lambda c: (-c.size, c.id)):
-            members = cluster.members
+            members = cluster.members[self._fate[cluster.members] == Fate.REJECTED]
             self._fate[members] = Fate.PENDING
             ok, _ = self._trial(members)
+            fit = self.last_fit
+            if not ok and fit is not None and 0 < fit.sum() < len(members):
+                self._fate[members[~fit]] = Fate.REJECTED
+                members = members[fit]
+                ok, _ = self._trial(members)
             self._fate[members] = Fate.ACCEPTED if ok else Fate.REJECTED
 
     # ------------------------------------------------------------------ 6. calibration
     #: A fit of the cycles' statistics with fewer degrees of freedom than this is heavy-tailed:
-    #: the loops are then not re-weighted (:meth:`_fit_scales`).
+    #: the weights in force are then kept (:meth:`_fit_scales`).
     GAUSSIAN_DOF = 20.0
 
     #: Bounds of the fitted noise scales (variance ratios to the declared noise).
@@ -1147,8 +1169,9 @@ class ConsensusVerifier:
         generated world's ``misdeclared`` noise declares the two off by different factors;
         ringCity's loops are exact while its odometry is noisy)."""
         index = np.asarray(index, dtype=np.int64)
-        if len(index) < self.plus.calibration_min_loops:
-            return
+        if len(index) < self.plus.calibration_min_loops or len(index) < 1.25 * self._scales_fitted_on:
+            return  # refitted when the cycles have grown by a quarter
+        self._scales_fitted_on = len(index)
         if len(index) > self.plus.calibration_sample_loops:
             index = index[-self.plus.calibration_sample_loops :]
         e, loop, odometry = self._pair_error[index], self._pair_loop[index], self._pair_odometry[index]
@@ -1183,7 +1206,7 @@ class ConsensusVerifier:
         # it, or KITTI's heavy-tailed loops; re-weighting by a misfitted ratio would do harm)
         fitted = mahalanobis_d2(e, 10.0 ** best[0] * loop + 10.0 ** best[1] * odometry + 1e-12 * np.eye(3))
         if fit_noise_quantiles(fitted).dof < self.GAUSSIAN_DOF:
-            sl = 1.0
+            return  # the weights in force stay (a later fit on more cycles may apply)
         change = max(abs(np.log(sl / self.loop_scale)), abs(np.log(so / self.odometry_scale)))
         if change > np.log(self.SCALE_CHANGE):
             self._apply_scales(sl, so)

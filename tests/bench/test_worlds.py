@@ -59,6 +59,10 @@ def test_noise_models():
             assert MISDECLARED_RANGE[0] <= factor <= MISDECLARED_RANGE[1]
         declared = np.linalg.inv(world.odometry_information)
         np.testing.assert_allclose(declared, world.declared_factors[0] * np.diag(np.square(world.spec.odometry_sigmas)))
+        world = generate_world(WorldSpec(poses=300, noise="anisotropic", seed=seed))
+        per_axis = np.diag(np.linalg.inv(world.loop_information)) / np.square(world.spec.loop_sigmas)
+        assert np.all((per_axis >= MISDECLARED_RANGE[0]) & (per_axis <= MISDECLARED_RANGE[1]))
+        assert np.ptp(np.log(per_axis)) > 0  # each axis off by its own factor
 
 
 def test_a_written_world_reads_back_through_the_g2o_recorder(tmp_path):

@@ -92,15 +92,17 @@ def test_the_schedule_and_the_records():
 
 @pytest.mark.slow
 def test_a_generated_world_with_grouped_outliers_that_the_previous_ilv_plus_failed(tmp_path):
-    """A ring city of 1,500 poses with declared covariances ten times off and 300 grouped
-    outliers (issue 16, seed fixed; the previous ilv+ accepted false groups here)."""
+    """A ring city of 2,000 poses, 500 grouped outliers (Vertigo protocol), its declared
+    covariances off by a different factor on each axis (``anisotropic``, as ringCity's are).
+    Measured on this seed: the previous ilv+ accepted 9 false loops (P 0.986, R 0.887, ATE
+    11.96 m); DCS P 1.000, R 0.980, ATE 1.05 m; the oracle's ATE is 0.26 m."""
     from pathlib import Path
 
     from lcv_replay.bench.suite import build_case_log
     from lcv_replay.bench.suites import world_cases
     from lcv_replay.bench.verify import load_inputs, verify_inputs
 
-    case = world_cases(["ring"], [1500], ["misdeclared"], ["group"], [300], [CI_WORLD_SEED])[0]
+    case = world_cases(["ring"], [2000], ["anisotropic"], ["group"], [500], [CI_WORLD_SEED])[0]
     inputs = load_inputs(build_case_log(case, Path("/nonexistent"), tmp_path).path)
     row = verify_inputs(inputs, "ilv+").row
     assert row.false_positives == 0 and row.precision == 1.0
@@ -109,4 +111,4 @@ def test_a_generated_world_with_grouped_outliers_that_the_previous_ilv_plus_fail
     assert row.ate_rmse_m <= 1.1 * oracle.ate_rmse_m
 
 
-CI_WORLD_SEED = 200
+CI_WORLD_SEED = 305
