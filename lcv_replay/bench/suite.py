@@ -203,8 +203,9 @@ class MethodSummary:
     ``pooled_*`` are micro-averages (total TP over total accepted, over total true candidates);
     ``mean_*`` average the per-case figures.
 
-    ``precision_one_cases`` counts cases with no false positive (precision 1, or nothing accepted
-    where nothing was true); ``ate_over_oracle`` is the mean ratio of ATE to the oracle's ATE.
+    ``no_false_positive_cases`` counts cases with no false positive (precision 1, or nothing
+    accepted where nothing was true); ``ambiguous`` the loops flagged ambiguous over all cases;
+    ``ate_over_oracle`` is the mean ratio of ATE to the oracle's ATE.
     """
 
     method: str
@@ -217,6 +218,7 @@ class MethodSummary:
     mean_recall: float | None
     mean_f1: float | None
     no_false_positive_cases: int
+    ambiguous: int
     mean_ate_m: float | None
     max_ate_over_oracle: float | None
     mean_ate_over_oracle: float | None
@@ -391,6 +393,7 @@ def summarise(rows: Sequence[CaseRow], methods: Sequence[str]) -> list[MethodSum
                 mean_recall=_mean([row.recall for row in ok]),
                 mean_f1=_mean([row.f1 for row in ok]),
                 no_false_positive_cases=sum(1 for row in ok if row.false_positives == 0),
+                ambiguous=sum(row.ambiguous for row in ok),
                 mean_ate_m=_mean([row.ate_rmse_m for row in ok]),
                 max_ate_over_oracle=max(ratios) if ratios else None,
                 mean_ate_over_oracle=_mean(ratios),
@@ -410,20 +413,21 @@ def _fmt(value: float | int | None, digits: int = 2) -> str:
 
 
 def markdown_rows(rows: Sequence[CaseRow]) -> str:
-    """One line per case × method: P, R, F1 (3 decimals: 0.998 is not 1), TP/FP/FN, ATE (aligned), time."""
+    """One line per case × method: P, R, F1 (3 decimals: 0.998 is not 1), TP/FP/FN, the loops
+    flagged ambiguous (neither accepted nor rejected), ATE (aligned), time."""
     lines = [
-        "| case | method | P | R | F1 | TP | FP | FN | ATE m | time s | ×RT |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| case | method | P | R | F1 | TP | FP | FN | amb. | ATE m | time s | ×RT |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         row = r.row
         if row is None:
-            lines.append(f"| {r.case} | {r.method} | error: {r.error} |||||||||")
+            lines.append(f"| {r.case} | {r.method} | error: {r.error} ||||||||||")
             continue
         lines.append(
             f"| {r.case} | {r.method} | {_fmt(row.precision, 3)} | {_fmt(row.recall, 3)} | {_fmt(row.f1, 3)} | "
             f"{_fmt(row.true_positives)} | {_fmt(row.false_positives)} | {_fmt(row.false_negatives)} | "
-            f"{_fmt(row.ate_rmse_m)} | {_fmt(row.wall_time_s)} | {_fmt(row.realtime_factor, 0)} |"
+            f"{_fmt(row.ambiguous)} | {_fmt(row.ate_rmse_m)} | {_fmt(row.wall_time_s)} | {_fmt(row.realtime_factor, 0)} |"
         )
     return "\n".join(lines)
 
@@ -431,15 +435,15 @@ def markdown_rows(rows: Sequence[CaseRow]) -> str:
 def markdown_summary(summary: Sequence[MethodSummary]) -> str:
     """One line per method: pooled and mean figures, worst precision, ATE against the oracle, time."""
     lines = [
-        "| method | cases | P pooled | R pooled | mean P | min P | no-FP cases | mean R | mean F1 | mean ATE m | ATE/oracle mean | ATE/oracle max | time s (total) | time s (median) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| method | cases | P pooled | R pooled | mean P | min P | no-FP cases | ambiguous loops | mean R | mean F1 | mean ATE m | ATE/oracle mean | ATE/oracle max | time s (total) | time s (median) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for s in summary:
         cases = f"{s.cases}" + (f" ({s.errors} errors)" if s.errors else "")
         lines.append(
             f"| {s.method} | {cases} | {_fmt(s.pooled_precision, 3)} | {_fmt(s.pooled_recall, 3)} | "
             f"{_fmt(s.mean_precision, 3)} | {_fmt(s.min_precision, 3)} | "
-            f"{s.no_false_positive_cases} | {_fmt(s.mean_recall, 3)} | {_fmt(s.mean_f1, 3)} | {_fmt(s.mean_ate_m)} | "
+            f"{s.no_false_positive_cases} | {s.ambiguous} | {_fmt(s.mean_recall, 3)} | {_fmt(s.mean_f1, 3)} | {_fmt(s.mean_ate_m)} | "
             f"{_fmt(s.mean_ate_over_oracle)} | {_fmt(s.max_ate_over_oracle)} | {_fmt(s.total_time_s, 1)} | "
             f"{_fmt(s.median_time_s)} |"
         )

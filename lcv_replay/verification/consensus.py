@@ -15,42 +15,47 @@ Its cost per window also grew with the history (GTSAM marginals of every hypothe
 
 What ``ilv+`` does now, at every window end (and in :meth:`ConsensusVerifier.result`):
 
-1. **Screen.** A loop whose innovation under the current solution fails ten gates even with a
-   looser prediction than the graph's own is set aside without a solve; it is screened again at
-   every window, since the solution moves. Two looser predictions bound the innovation from below:
-   the odometry alone between its ends, and twice the sum of the marginal covariances its two
-   frames had when they were the newest frames of the graph (a frame's marginal only shrinks as
-   loops are added, so a marginal remembered from then bounds today's).
-2. **Clusters (PCM's pairwise test, locally).** The remaining new loops are grouped: two loops
-   whose query frames and match frames both lie within ``cluster_span_frames`` are joined when
-   the short cycle they close with the odometry passes the gate
-   (:func:`~lcv_replay.verification.consistency.cycle_d2`). A run of loops from one revisit is
-   one cluster; so is a group of Vertigo outliers. Clusters, not loops, are what is accepted,
-   rejected or contested, so a group can no longer mask its own members.
-3. **Verification against the working hypothesis, cluster by cluster, largest first.** The
-   working hypothesis is the odometry plus the accepted loops, solved incrementally by iSAM2
-   (:class:`~lcv_replay.verification.pose_graph.IncrementalGraph`). A cluster joins when its
-   innovation, the increase of the graph's chi-square when it is added, passes the gate for its
-   size and each member's residual passes the per-loop gate. If its residuals already pass at
-   the current solution, the innovation is bounded by them and it joins without a solve.
-4. **Contests (the multi-hypothesis step).** A cluster that fails names its opponents: the
-   accepted clusters whose residuals it breaks. The alternative hypothesis (the opponents out, the
-   challenger and every earlier loser to the same opponents in) is solved, and the two are ranked
-   by the truncated-least-squares cost ``J = χ² + gate × (loops left out)`` (the objective GNC-TLS
-   minimises). The better one stays; when they are within ``ambiguity_margin`` gates of each
-   other, neither wins: both sides leave the graph and are reported **ambiguous** (flagged, never
-   accepted), and they are contested again at later windows, when new loops have arrived.
-5. **Refinement.** An accepted loop whose residual fails the gate at the new solution marks its
-   cluster as strained; the strained cluster is taken out, and contested against the clusters
-   its removal relieves.
-6. **Calibration.** Before anything is decided in a window, the gate is calibrated to the noise
-   the data show, from the pairwise statistics of the accepted clusters and the new ones, by a
-   fit that a few false pairs do not move (:mod:`~lcv_replay.verification.noise_scale`); new
-   clusters are formed again if the gate changed much.
+1. **Screen.** A loop whose innovation fails ten gates even under a looser prediction than the
+   graph's own is set aside without a solve, and screened again at every window (the solution
+   moves). Two looser predictions bound the innovation from below: the odometry alone between
+   its ends, and twice the sum of the marginal covariances its two frames had when they were the
+   newest frames of the graph (a marginal only shrinks as loops are added).
+2. **Clusters (PCM's pairwise test, locally).** Two loops whose query frames and match frames
+   both lie within ``cluster_span_frames`` are joined when the short cycle they close with the
+   odometry passes the pairwise gate (:class:`~lcv_replay.verification.consistency.Cycles`). A run
+   of loops from one revisit is one cluster; so is a group of Vertigo outliers. Clusters, not
+   loops, are accepted, refused and contested, so a group can no longer mask its own members.
+3. **Verification against the working hypothesis**, the odometry plus the accepted loops solved
+   incrementally by iSAM2 (:class:`~lcv_replay.verification.pose_graph.IncrementalGraph`), largest
+   cluster first: a cluster whose residuals already pass at the current solution joins without a
+   solve (its innovation is at most those residuals); the others are added together and those that
+   do not fit the joint solution are set aside (:meth:`ConsensusVerifier._joint`); the rest are
+   tried one by one (:meth:`ConsensusVerifier._trial`): a cluster joins when its innovation, the
+   rise of the chi-square, passes the gate for its size and every member fits, or when it has
+   three loops or more, every member fits and the hypothesis holding it has the lower truncated
+   cost. Members of a refused cluster that do not fit go back to the pool.
+4. **Contests (the multi-hypothesis step).** A refused cluster names its opponents: the accepted
+   clusters it strains. The alternative hypothesis (an opponent out, the challenger and every
+   earlier loser to it in) is solved, and the two are ranked by the truncated-least-squares cost
+   ``J = χ² + gate × (loops left out)`` (the objective GNC-TLS minimises). The better one stays;
+   within ``ambiguity_margin`` gates of each other, neither wins: both sides leave the graph and
+   are reported **ambiguous** (flagged, never accepted), to be contested again at later windows.
+5. **Refinement and audit.** Accepted loops whose residual fails the gate at the new solution are
+   taken out and contested against what they strain, or sent back to the pool; the accepted loops
+   that fit least well are tested by leave-one-out from iSAM2's joint marginals.
+6. **Calibration**, before anything is decided: the loops are re-weighted against the odometry
+   (two variance components fitted to the pairwise cycles, applied where they describe them) and
+   the gate is the larger of two robust fits (:mod:`~lcv_replay.verification.noise_scale`): of the
+   pairwise cycles, and of the innovations of the clusters accepted by a solve.
+
+A small cluster beyond every accepted loop, the only hold on the free end of the trajectory where
+any loop fits, waits one window for support; at the end of the log it is decided, and clusters
+refused by a near miss are tried once more against the final hypothesis.
 
 Cost per window: the screen and the residual tests are vectorised numpy over the constraints;
 solves are iSAM2 updates, whose cost is the part of the Bayes tree the change touches, and their
-number depends on the clusters of the window, not on the history.
+number depends on the clusters of the window, not on the history (it grows mildly with the graph,
+whose loops reach further back: see ``lcv-replay bench scale``).
 """
 
 from __future__ import annotations
@@ -63,21 +68,19 @@ from typing import Sequence
 
 import numpy as np
 
-from lcv_replay.errors import VerificationError
-from lcv_replay.records import LoopCandidate, Pose2D
 from lcv_replay import se2
+from lcv_replay.errors import VerificationError
 from lcv_replay.verification import pose_graph
 from lcv_replay.verification.base import (
-    Constraint,
     ConstraintHistory,
     HypothesisSummary,
     VerificationResult,
     VerifierStep,
-    checked_frame,
     default_informations,
 )
 from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.consistency import Cycles, connected_labels, mahalanobis_d2, neighbour_pairs, position_consistent
+from lcv_replay.verification.incremental import WindowedVerifier
 from lcv_replay.verification.noise_scale import NoiseFit, fit_noise_quantiles
 from lcv_replay.verification.measurements import OdometryChain, odometry_between
 from lcv_replay.verification.pose_graph import IncrementalGraph, LoopFactor, OptimisationFailed
@@ -134,8 +137,9 @@ class _Contest:
     outcome: str
 
 
-class ConsensusVerifier:
-    """``ilv+`` (see the module docstring), fed frame by frame through the ``Verifier`` protocol.
+class ConsensusVerifier(WindowedVerifier):
+    """``ilv+`` (see the module docstring), fed frame by frame through the ``Verifier`` protocol
+    (:class:`~lcv_replay.verification.incremental.WindowedVerifier`).
 
     Args:
         config: verification config (window length, seed) and ``config.ilv_plus``.
@@ -158,6 +162,7 @@ class ConsensusVerifier:
         self.odometry_scale = 1.0
         self._retired_updates = 0
         self._scales_fitted_on = 0  # cycles the last variance-component fit used
+        self._cluster_counter = 0
         # the bank of pairwise cycles inside clusters: constraint ids (P, 2), errors (P, 3), and
         # the declared loop and odometry parts of their covariance (P, 3, 3) each
         self._pair_ids = np.zeros((0, 2), dtype=np.int64)
@@ -193,24 +198,6 @@ class ConsensusVerifier:
         self._result: VerificationResult | None = None
 
     # ------------------------------------------------------------------ Verifier protocol
-    def add_frame(self, frame_index: int, odom: Pose2D) -> None:
-        self._pending.append(checked_frame(self.name, frame_index, self.num_frames, odom, finished=self._result is not None))
-
-    def add_candidates(self, candidates: Sequence[LoopCandidate]) -> list[Constraint]:
-        if self._result is not None:
-            raise VerificationError(f"{self.name}: add_candidates after result()", fix="build a new verifier")
-        return self.history.admit(candidates, self.num_frames)
-
-    @property
-    def num_frames(self) -> int:
-        return len(self.chain) + len(self._pending)
-
-    def step(self) -> VerifierStep | None:
-        n = self.num_frames
-        if n == 0 or n % self.config.window_frames != 0 or n == self._stepped_frames:
-            return None
-        return self._window_end()
-
     def result(self) -> VerificationResult:
         if self._result is not None:
             return self._result
@@ -543,8 +530,6 @@ class ConsensusVerifier:
             if len(members):
                 verify.append((-len(members), int(self._q[members].min()), cluster))
         return [c for *_, c in sorted(verify, key=lambda t: (t[0], t[1], t[2].id))]
-
-    _cluster_counter = 0
 
     def _new_cluster_id(self) -> int:
         self._cluster_counter += 1
@@ -909,11 +894,6 @@ class ConsensusVerifier:
         return cluster
 
     # ------------------------------------------------------------------ 4. contests
-    def _accepted_members(self, cluster_ids: set[int]) -> np.ndarray:
-        ids = [self.clusters[c].members for c in cluster_ids]
-        members = np.concatenate(ids) if ids else np.zeros(0, dtype=np.int64)
-        return members[self._fate[members] == Fate.ACCEPTED]
-
     def _contest_losers(self, losers: list[tuple[Cluster, set[int]]], contests: list[_Contest], budget: int) -> int:
         """For each refused cluster with opponents: the alternative with an opponent out and, in,
         the refused cluster and every cluster refused earlier whose opponents include it. The

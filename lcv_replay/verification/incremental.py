@@ -128,7 +128,45 @@ class _Generation:
     dropped: list[tuple[int, str]] = field(default_factory=list)
 
 
-class IncrementalVerifier:
+class WindowedVerifier:
+    """The frame-by-frame shell of a windowed verifier (``ilv``, ``ilv+``): odometry buffered until
+    the window end, candidates admitted into the history, a step at every window of
+    ``config.window_frames`` frames. A subclass sets ``name``, ``config``, ``chain``, ``history``,
+    ``_pending`` (buffered odometry), ``_stepped_frames`` and ``_result``, and implements
+    :meth:`_window_end`."""
+
+    name: str
+    config: VerificationConfig
+    chain: OdometryChain
+    history: ConstraintHistory
+    _pending: list[tuple[float, float, float]]
+    _stepped_frames: int
+    _result: VerificationResult | None
+
+    def add_frame(self, frame_index: int, odom: Pose2D) -> None:
+        self._pending.append(checked_frame(self.name, frame_index, self.num_frames, odom, finished=self._result is not None))
+
+    def add_candidates(self, candidates: Sequence[LoopCandidate]) -> list[Constraint]:
+        if self._result is not None:
+            raise VerificationError(f"{self.name}: add_candidates after result()", fix="build a new verifier")
+        return self.history.admit(candidates, self.num_frames)
+
+    @property
+    def num_frames(self) -> int:
+        """Frames added so far."""
+        return len(self.chain) + len(self._pending)
+
+    def step(self) -> VerifierStep | None:
+        n = self.num_frames
+        if n == 0 or n % self.config.window_frames != 0 or n == self._stepped_frames:
+            return None
+        return self._window_end()
+
+    def _window_end(self) -> VerifierStep:
+        raise NotImplementedError
+
+
+class IncrementalVerifier(WindowedVerifier):
     """Multi-model hypothesize-and-verify, fed frame by frame (the ``Verifier`` protocol).
 
     Args:
@@ -167,30 +205,12 @@ class IncrementalVerifier:
         self._result: VerificationResult | None = None
 
     # ------------------------------------------------------------------ Verifier protocol
-    def add_frame(self, frame_index: int, odom: Pose2D) -> None:
-        self._pending.append(checked_frame(self.name, frame_index, self.num_frames, odom, finished=self._result is not None))
-
-    def add_candidates(self, candidates: Sequence[LoopCandidate]) -> list[Constraint]:
-        if self._result is not None:
-            raise VerificationError(f"{self.name}: add_candidates after result()", fix="build a new verifier")
-        return self.history.admit(candidates, self.num_frames)
-
-    @property
-    def num_frames(self) -> int:
-        """Frames added so far."""
-        return len(self.chain) + len(self._pending)
 
     def _flush(self) -> None:
         """Append the buffered odometry to the chain (done once per window, not per frame)."""
         if self._pending:
             self.chain.extend(np.asarray(self._pending, dtype=np.float64))
             self._pending.clear()
-
-    def step(self) -> VerifierStep | None:
-        n = self.num_frames
-        if n == 0 or n % self.config.window_frames != 0 or n == self._stepped_frames:
-            return None
-        return self._window_end()
 
     def result(self) -> VerificationResult:
         if self._result is not None:
