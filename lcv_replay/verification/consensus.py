@@ -161,6 +161,7 @@ class ConsensusVerifier(WindowedVerifier):
         self.loop_scale = 1.0
         self.odometry_scale = 1.0
         self._retired_updates = 0
+        self._finished = False  # the last window end was the end of the log
         self._scales_fitted_on = 0  # cycles the last variance-component fit used
         self._cluster_counter = 0
         # the bank of pairwise cycles inside clusters: constraint ids (P, 2), errors (P, 3), and
@@ -203,7 +204,9 @@ class ConsensusVerifier(WindowedVerifier):
             return self._result
         if self.num_frames == 0:
             raise VerificationError(f"{self.name}: no frames were added", fix="feed at least one frame")
-        if self.num_frames != self._stepped_frames or len(self.history) != len(self._fate) or np.any(self._fate == Fate.PENDING):
+        if not self._finished:
+            # the end of the log is a window end of its own: what waited at the frontier, what
+            # went back to the pool and the near misses are decided against the final hypothesis
             self._window_end(final=True)
         step = self._last_step
         assert step is not None
@@ -227,6 +230,7 @@ class ConsensusVerifier(WindowedVerifier):
 
     # ------------------------------------------------------------------ the window end
     def _window_end(self, *, final: bool = False) -> VerifierStep:
+        self._finished = final
         start = time.perf_counter()
         timings = {"screen": 0.0, "cluster": 0.0, "verify": 0.0, "contest": 0.0, "refine": 0.0, "calibrate": 0.0}
         updates_before = self._updates()
@@ -280,9 +284,9 @@ class ConsensusVerifier(WindowedVerifier):
         self._refine(contests, budget)
         self._audit()
         if final:
-            self._retry_near_misses()
             if np.any(self._fate == Fate.PENDING):  # sent back to the pool in this last window
                 self._verify(self._form_clusters(self._screen()), final=True)
+            self._retry_near_misses()
         timings["refine"] = time.perf_counter() - t
 
 
