@@ -11,11 +11,10 @@ import pytest
 from typer.testing import CliRunner
 
 from lcv_replay.cli import app
-from lcv_replay.errors import RecorderError
 from lcv_replay.log.reader import open_log
 from recorders.common import read_image
 from recorders.ros2 import Ros2Options, image_to_array, record_ros2
-from tests.conftest import shared_path
+from tests.shared_data import shared_path
 from tests.recorders.trees import KITTI06_CX, KITTI06_CY, KITTI06_FX, KITTI06_FX_BASELINE
 
 SEP = "\n" + "=" * 80 + "\n"
