@@ -10,13 +10,12 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
-import sys
 from pathlib import Path
 from typing import Optional
 
 import typer
 
-from lcv_replay.cli.app import app
+from lcv_replay.cli.app import app, check_outputs, force_option
 
 log = logging.getLogger(__name__)
 
@@ -72,16 +71,14 @@ def demo_command(
     seed: int = typer.Option(DEMO_SEED, "--seed", help="Seed of the world, the route and the replay."),
     rerecord: bool = typer.Option(False, "--rerecord", help="Record the synthetic world again even if it is cached."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
+    force: bool = force_option("the recording and the summary JSON"),
 ) -> None:
     from lcv_replay.cli.replay import build_sinks
     from lcv_replay.config import ReplayConfig
-    from lcv_replay.fileio import check_output_path
     from lcv_replay.replay import ReplayOptions, replay
     from lcv_replay.sinks.config import RerunOutputs
 
-    check_output_path(save, force=True)
-    if summary_json is not None:
-        check_output_path(summary_json, force=True)
+    check_outputs(save, summary_json, force=force)
     log_path = ensure_demo_log(frames, seed, DEMO_WIDTH_PX, DEMO_HEIGHT_PX, rerecord=rerecord, quiet=quiet)
     config = ReplayConfig()
     outputs = RerunOutputs(save=save, spawn=spawn)

@@ -10,7 +10,7 @@ from typing import Optional
 
 import typer
 
-from lcv_replay.cli.app import app
+from lcv_replay.cli.app import LcvCommand, app, check_outputs, config_option, force_option
 
 
 class ConstraintChoice(str, enum.Enum):
@@ -88,7 +88,14 @@ class _ServeUntilInterrupted:
         pass
 
 
-@app.command("replay", hidden=True, help="Replay LOG.mcap through retrieval and incremental verification, logging every step to Rerun.")
+class ReplayCommand(LcvCommand):
+    """The default command: its usage is ``lcv-replay LOG.mcap [OPTIONS]``."""
+
+    def format_usage(self, ctx, formatter) -> None:
+        formatter.write_usage(ctx.parent.command_path if ctx.parent else ctx.command_path, "LOG.mcap [OPTIONS]")
+
+
+@app.command("replay", cls=ReplayCommand, hidden=True, help="Replay LOG.mcap through retrieval and incremental verification, logging every step to Rerun.")
 def replay_command(
     log: Path = typer.Argument(..., metavar="LOG.mcap", help="An lcv-replay MCAP log (written by 'lcv-replay record')."),
     rate: str = typer.Option("max", "--rate", "-r", help="Playback rate: 1.0 = real time by the log's timestamps; 'max' = as fast as possible."),
@@ -96,9 +103,9 @@ def replay_command(
     duration: Optional[float] = typer.Option(None, "--duration", help="Replay only this many seconds."),
     method: Optional[str] = typer.Option(None, "--method", "-m", help="Verifier: ilv (the paper), ilv+, none, ir-only, dcs, gm, cauchy, gnc, oracle (default: the config's verification.method)."),
     constraints: Optional[ConstraintChoice] = typer.Option(None, "--constraints", case_sensitive=False, help="Loop constraints from our retrieval on the images, the log's /loop_candidates, or both (default: log if it has candidates, else images)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="TOML config over the paper defaults (unknown keys are refused)."),
+    config: Optional[Path] = config_option("over the paper defaults, unknown keys refused"),
     seed: Optional[int] = typer.Option(None, "--seed", help="Seed of retrieval and verification (default: the config's)."),
-    save: Optional[Path] = typer.Option(None, "--save", help="Write the Rerun recording here, overwriting it (default: LOG.rrd next to the log, or in the current folder if that one is not writable)."),
+    save: Optional[Path] = typer.Option(None, "--save", help="Write the Rerun recording here (default: LOG.rrd next to the log, or in the current folder if that one is not writable)."),
     no_save: bool = typer.Option(False, "--no-save", help="Write no .rrd (with --spawn/--connect/--serve)."),
     spawn: bool = typer.Option(False, "--spawn", help="Open a Rerun viewer and stream to it."),
     connect: Optional[str] = typer.Option(None, "--connect", help="Stream to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy."),
@@ -111,6 +118,7 @@ def replay_command(
     summary_json: Optional[Path] = typer.Option(None, "--summary-json", help="Also write the summary as JSON (keys: docs/summary-json.md)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
     recover: bool = typer.Option(False, "--recover", help="Read the complete chunks of a truncated log."),
+    force: bool = force_option("the recording and the summary JSON"),
 ) -> None:
     import dataclasses
 
@@ -140,11 +148,14 @@ def replay_command(
     if not no_rerun:
         from lcv_replay.sinks.config import RerunOutputs
 
+        save_path = None if no_save else (save if save is not None else default_save_path(log))
+        check_outputs(save_path, force=force)
         outputs = RerunOutputs(
-            save=None if no_save else (save if save is not None else default_save_path(log)),
+            save=save_path,
             spawn=spawn, connect=connect, serve=serve, grpc_port=grpc_port, web_port=web_port,
             memory_limit=memory_limit,
         )
+    check_outputs(summary_json, force=force)
     sinks = build_sinks(rerun_config=replay_config.rerun, outputs=outputs, summary_json=summary_json, quiet=quiet)
     summary = replay(options, sinks)
     if summary.interrupted:

@@ -155,3 +155,15 @@ def test_the_oracle_on_a_log_without_truth_is_refused_before_the_first_frame(squ
     code, out = _cli([str(log), "--method", "oracle", "-c", str(config), "--no-rerun", "--quiet"])
     _assert_one_line_error(code, out, "no_truth.mcap", "method 'oracle' needs the log's true loops", "--true-loops")
     assert "accepted" not in out  # refused up front: no summary
+
+
+def test_an_existing_output_is_refused_without_force_and_replaced_with_it(square, tmp_path):
+    _, log, config = square
+    out = tmp_path / "kept.rrd"
+    out.write_bytes(b"an earlier recording")
+    code, text = _cli([str(log), "-c", str(config), "--save", str(out), "--quiet"])
+    _assert_one_line_error(code, text, "kept.rrd", "already exists", "--force")
+    assert out.read_bytes() == b"an earlier recording"  # refused before the replay touched anything
+    code, text = _cli([str(log), "-c", str(config), "--save", str(out), "--quiet", "-f"])
+    assert code == 0, text
+    assert out.stat().st_size > 1000 and out.read_bytes()[:4] != b"an e"
