@@ -113,6 +113,8 @@ class VerifyRow:
     ``cpu_time_s`` is the process CPU time of the run (steadier than wall time on a shared machine,
     but it also counts GTSAM's worker threads, if any). ``gate_chi2`` is the chi-square gate in
     force at the end (``ilv+`` calibrates it to the data; ``None`` for methods without one).
+    ``ambiguous`` counts the constraints flagged ambiguous at the end (neither accepted nor
+    rejected, ``ilv+``), ``ambiguous_true`` how many of them are true (``None`` without truth).
     """
 
     log: str
@@ -145,6 +147,8 @@ class VerifyRow:
     window_time_max_s: float | None
     gate_chi2: float | None
     seed: int
+    ambiguous: int = 0
+    ambiguous_true: int | None = None
     case: str | None = None
     config: dict[str, Any] = field(default_factory=dict)
 
@@ -266,6 +270,8 @@ def verify_inputs(
         window_time_max_s=float(np.max(window_times)) if window_times else None,
         gate_chi2=result.last_step.gate_chi2 if result.last_step else None,
         seed=config.seed,
+        ambiguous=len(result.ambiguous_constraint_ids),
+        ambiguous_true=len(truth.true_ids & set(result.ambiguous_constraint_ids)) if truth.known else None,
         case=case,
         config=to_dict(config),
     )

@@ -92,6 +92,10 @@ class VerifierStep:
         dropped: ``(hypothesis_id, reason)`` for hypotheses dropped (optimiser failure, pruning).
         gate_chi2: the chi-square gate in force in this step, in the declared noise units
             (``ilv+`` calibrates it to the data); ``None`` for methods without one.
+        ambiguous_constraint_ids: constraints the verifier can neither accept nor reject yet:
+            mutually consistent loops that compete with other loops and explain the data about as
+            well (``ilv+``). They are flagged, never accepted (disjoint from
+            ``accepted_constraint_ids``); empty for methods without such a verdict.
     """
 
     frame_index: int
@@ -106,6 +110,7 @@ class VerifierStep:
     timings_s: dict[str, float] = field(default_factory=dict)
     dropped: tuple[tuple[int, str], ...] = ()
     gate_chi2: float | None = None
+    ambiguous_constraint_ids: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -121,6 +126,8 @@ class VerificationResult:
         paper_consistent_ids: constraints consistent with the top hypothesis under the paper's
             T_p test (sec. II-A), for the paper's own precision/recall.
         last_step: the last step (for sinks), if any.
+        ambiguous_constraint_ids: constraints flagged ambiguous at the end (never accepted; see
+            :attr:`VerifierStep.ambiguous_constraint_ids`).
     """
 
     method: str
@@ -130,6 +137,7 @@ class VerificationResult:
     ranking: tuple[HypothesisSummary, ...] = ()
     paper_consistent_ids: tuple[int, ...] = ()
     last_step: VerifierStep | None = None
+    ambiguous_constraint_ids: tuple[int, ...] = ()
 
 
 def result_step(result: VerificationResult, last: VerifierStep | None) -> VerifierStep:
