@@ -159,8 +159,9 @@ class StopToken:
 
 
 @contextlib.contextmanager
-def sigint_requests_stop(token: StopToken) -> Iterator[None]:
-    """While active, the first SIGINT sets ``token``; a second one raises ``KeyboardInterrupt``.
+def sigint_requests_stop(token: StopToken, *, what: str = "stopping after this frame and finalising the outputs") -> Iterator[None]:
+    """While active, the first SIGINT sets ``token`` (and logs ``what`` happens now); a second one
+    raises ``KeyboardInterrupt``.
 
     Only possible in the main thread; elsewhere this does nothing (the caller's token still works).
     """
@@ -172,7 +173,7 @@ def sigint_requests_stop(token: StopToken) -> Iterator[None]:
         if token.requested:
             raise KeyboardInterrupt
         token.request()
-        logger.warning("Ctrl-C: stopping after this frame and finalising the outputs (Ctrl-C again to hurry)")
+        logger.warning("Ctrl-C: %s (Ctrl-C again to hurry)", what)
 
     previous = signal.signal(signal.SIGINT, handler)
     try:

@@ -11,10 +11,12 @@ from lcv_replay.cli import (  # noqa: E402,F401
     bench_verify,
     bench_vo,
     demo,
+    fleet,
     info,
     record,
     record_synthetic,
     replay,
+    report,
     vo,
 )
 

@@ -78,13 +78,19 @@ def config_option(what: str) -> Any:
     return typer.Option(None, "--config", "-c", help=f"TOML config (lcv-replay's one config tree); {what}.")
 
 
-def check_outputs(*paths: Path | None, force: bool) -> None:
-    """Before any work: refuse an output that exists (without ``--force``) or cannot be written."""
+def check_outputs(*paths: Path | None, force: bool, folder: Path | None = None) -> None:
+    """Before any work: refuse an output that exists (without ``--force``) or cannot be written.
+
+    ``folder`` is an output folder (``--export DIR``): refused when it already holds files.
+    """
+    from lcv_replay.errors import OutputError
     from lcv_replay.fileio import check_output_path
 
     for path in paths:
         if path is not None:
             check_output_path(path, force=force)
+    if folder is not None and not force and folder.is_dir() and any(folder.iterdir()):
+        raise OutputError("output folder is not empty", path=folder, fix="pass --force to overwrite its files, or name a new folder")
 
 
 class LcvTyper(typer.Typer):
@@ -151,7 +157,10 @@ def _root(
     version: bool = typer.Option(False, "--version", callback=_version_callback, is_eager=True, help="Print the version."),
 ) -> None:
     logging.basicConfig(
-        level=logging.DEBUG if verbose else logging.INFO,
+        level=logging.DEBUG if verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
+    if not verbose:  # our own INFO lines; other libraries' only from WARNING up (-v: everything)
+        for name in ("lcv_replay", "recorders"):
+            logging.getLogger(name).setLevel(logging.INFO)

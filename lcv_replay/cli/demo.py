@@ -66,24 +66,28 @@ def demo_command(
     frames: int = typer.Option(DEMO_FRAMES, "--frames", min=50, help="Frames of the synthetic drive."),
     save: Path = typer.Option(Path("demo.rrd"), "--save", help="Rerun recording to write."),
     summary_json: Optional[Path] = typer.Option(None, "--summary-json", help="Also write the summary as JSON (docs/summary-json.md)."),
+    export: Optional[Path] = typer.Option(None, "--export", metavar="DIR", help="Write trajectories (TUM, KITTI), loops.csv, accepted.g2o, config.toml and summary.json into DIR."),
+    report: Optional[Path] = typer.Option(None, "--report", metavar="FILE.html", help="Write a self-contained HTML report of the run."),
     spawn: bool = typer.Option(False, "--spawn", help="Open a Rerun viewer and stream to it."),
     method: Optional[str] = typer.Option(None, "--method", "-m", help="Verifier (default: the config's)."),
     seed: int = typer.Option(DEMO_SEED, "--seed", help="Seed of the world, the route and the replay."),
     rerecord: bool = typer.Option(False, "--rerecord", help="Record the synthetic world again even if it is cached."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
-    force: bool = force_option("the recording and the summary JSON"),
+    force: bool = force_option("the recording, the summary JSON, the report and the export folder's files"),
 ) -> None:
     from lcv_replay.cli.replay import build_sinks
     from lcv_replay.config import ReplayConfig
     from lcv_replay.replay import ReplayOptions, replay
     from lcv_replay.sinks.config import RerunOutputs
 
-    check_outputs(save, summary_json, force=force)
-    log_path = ensure_demo_log(frames, seed, DEMO_WIDTH_PX, DEMO_HEIGHT_PX, rerecord=rerecord, quiet=quiet)
+    check_outputs(save, summary_json, report, force=force, folder=export)
     config = ReplayConfig()
     outputs = RerunOutputs(save=save, spawn=spawn)
-    sinks = build_sinks(rerun_config=config.rerun, outputs=outputs, summary_json=summary_json, quiet=quiet)
+    # Every output is checked before the (possibly long) recording of the world.
+    build_sinks(rerun_config=config.rerun, outputs=None, summary_json=summary_json, quiet=True, export=export, report=report)
+    log_path = ensure_demo_log(frames, seed, DEMO_WIDTH_PX, DEMO_HEIGHT_PX, rerecord=rerecord, quiet=quiet)
+    sinks = build_sinks(rerun_config=config.rerun, outputs=outputs, summary_json=summary_json, quiet=quiet,
+                        export=export, report=report)
     summary = replay(ReplayOptions(log_path=log_path, config=config, method=method, seed=seed), sinks)
-    typer.echo(f"\nopen the recording with:  rerun {save}")
     if summary.interrupted:
         raise typer.Exit(130)
