@@ -11,6 +11,7 @@ Field logs are replayed as they come (the field-log part of this command):
 from __future__ import annotations
 
 import enum
+import logging
 import os
 import sys
 from dataclasses import dataclass
@@ -29,6 +30,8 @@ from lcv_replay.cli.record import (
     ODOM_TOPIC_OPTION,
     RIGHT_TOPIC_OPTION,
 )
+
+logger = logging.getLogger(__name__)
 
 
 class ConstraintChoice(str, enum.Enum):
@@ -204,7 +207,11 @@ def replay_command(
         from lcv_replay.sinks.config import RerunOutputs
 
         save_path = None if no_save else (save if save is not None else field.default_rrd)
-        check_outputs(save_path, force=force)
+        # A file the user names is never overwritten without --force; the default recording beside
+        # the log is the replay's own output, replaced by each run (as 'lcv-replay demo' does).
+        check_outputs(save_path, force=force or save is None)
+        if save is None and save_path is not None and save_path.exists():
+            logger.info("replacing %s (the default recording; name one with --save to keep this one)", save_path)
         outputs = RerunOutputs(
             save=save_path,
             spawn=spawn, connect=connect, serve=serve, grpc_port=grpc_port, web_port=web_port,

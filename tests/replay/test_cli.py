@@ -167,3 +167,13 @@ def test_an_existing_output_is_refused_without_force_and_replaced_with_it(square
     code, text = _cli([str(log), "-c", str(config), "--save", str(out), "--quiet", "-f"])
     assert code == 0, text
     assert out.stat().st_size > 1000 and out.read_bytes()[:4] != b"an e"
+
+
+def test_the_default_recording_beside_the_log_is_replaced_by_each_run(square, tmp_path):
+    """Only files the user names need --force: replaying twice into the default LOG.rrd works."""
+    _, log, config = square
+    default = log.with_suffix(".rrd")
+    for _ in range(2):
+        code, text = _cli([str(log), "-c", str(config), "--quiet"])
+        assert code == 0, text
+        assert default.stat().st_size > 1000
