@@ -255,8 +255,12 @@ class LogReader:
         return self._ground_truth.copy()
 
     def check(self) -> None:
-        """Full check: every chunk's CRC, finite odometry, valid candidates/labels (decodes everything but images)."""
+        """Full check: every chunk's CRC, the data-section CRC, finite odometry, valid candidates/labels.
+
+        Decodes everything but images.
+        """
         self._c.verify_chunks()
+        self._c.verify_data_section()
         if self._tables.odom is not None:
             self.odometry()
         self.ground_truth()
@@ -297,6 +301,9 @@ class LogReader:
             bad = np.flatnonzero(np.diff(table["log_time"]) <= 0)
             if len(bad):
                 k = int(bad[0]) + 1
+                # Message indexes carry no CRC: blame the stamps only once the messages confirm them.
+                self._c.read_entry(table[k - 1])
+                self._c.read_entry(table[k])
                 raise LogFormatError(
                     f"timestamps go backwards on {topic}: message {k} has log_time {int(table['log_time'][k])} ns, "
                     f"not after message {k - 1} at {int(table['log_time'][k - 1])} ns",
@@ -308,6 +315,12 @@ class LogReader:
         e = self._topic_entries
         left, right, odom = e[fmt.LEFT_IMAGE_TOPIC], e[fmt.RIGHT_IMAGE_TOPIC], e[fmt.ODOM_TOPIC]
         if not any(len(table) for table in self._c.entries.values()):
+            if self._c.recovered_messages is not None:
+                raise LogFormatError(
+                    f"--recover salvaged nothing: {self._c.damage or 'the file holds no message'}",
+                    path=self.path,
+                    fix="the file is damaged before its first complete chunk; re-copy it from its source or re-record it",
+                )
             raise LogFormatError(
                 "the log is empty: it has no messages",
                 path=self.path,
@@ -476,7 +489,7 @@ class LogReader:
 
     def _decode(self, row: np.void) -> tuple[Any, Any]:
         """Decode the message at a table row; returns ``(raw message, decoded object)``."""
-        raw = self._c.read_message(int(row["chunk"]), int(row["offset"]))
+        raw = self._c.read_entry(row)
         channel = self._c.channels.get(raw.channel_id)
         if channel is None:
             raise LogFormatError(f"a message refers to unknown channel {raw.channel_id}", path=self.path, fix="re-record the log")

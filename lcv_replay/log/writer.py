@@ -142,6 +142,7 @@ class LogWriter:
                 chunk_size=int(chunk_size_bytes),
                 compression=_COMPRESSION[compression],
                 enable_crcs=True,
+                enable_data_crcs=True,  # lets `info --check` verify metadata and message indexes too
             )
             self._mcap.start(profile="", library=f"lcv-replay/{__version__}")
             self._mcap.add_metadata(
