@@ -31,6 +31,7 @@ from typing import Any, Callable, Iterable, Literal, Protocol, Sequence
 import numpy as np
 
 from lcv_replay.errors import RecorderError
+from lcv_replay.fileio import format_size
 from lcv_replay.records import LoopCandidate, Pose2D, StereoCalibration
 
 #: ``R_body_camera`` for a camera with x right, y down, z forward (KITTI, OpenCV).
@@ -78,16 +79,6 @@ class RecordStats:
             f"wrote {self.path}: {', '.join(parts)}, {format_size(self.size_bytes)} in {self.elapsed_s:.1f} s "
             f"({self.frames_per_s:.0f} frames/s)"
         )
-
-
-def format_size(size_bytes: int) -> str:
-    """``1234567 -> '1.2 MB'`` (decimal units, as ``ros2 bag info``)."""
-    size = float(size_bytes)
-    for unit in ("B", "kB", "MB", "GB"):
-        if size < 1000.0 or unit == "GB":
-            return f"{size:.0f} {unit}" if unit == "B" else f"{size:.1f} {unit}"
-        size /= 1000.0
-    raise AssertionError("unreachable")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -29,11 +29,19 @@ class DefaultReplayGroup(TyperGroup):
         return super().parse_args(ctx, args)
 
     def invoke(self, ctx: typer.Context):
+        from lcv_replay.fileio import is_write_failure, write_error
+
         try:
             return super().invoke(ctx)
         except LcvError as exc:
             typer.echo(f"error: {exc.format()}", err=True)
             raise SystemExit(exc.exit_code) from None
+        except OSError as exc:  # a full disk or unwritable folder that no writer caught (mkdir, ...)
+            if not (is_write_failure(exc) and exc.filename):
+                raise
+            error = write_error(exc.filename, exc, what="there")
+            typer.echo(f"error: {error.format()}", err=True)
+            raise SystemExit(error.exit_code) from None
 
 
 app = typer.Typer(

@@ -27,7 +27,7 @@ from mcap_protobuf.schema import register_schema
 
 from lcv_replay import __version__
 from lcv_replay.errors import RecorderError
-from lcv_replay.fileio import atomic_output
+from lcv_replay.fileio import atomic_output, is_write_failure, write_error
 from lcv_replay.log import format as fmt
 from lcv_replay.log import images, messages
 from lcv_replay.records import LoopCandidate, Pose2D, StereoCalibration
@@ -163,6 +163,12 @@ class LogWriter:
                 },
             )
             self._mcap.add_metadata(fmt.RECORDER_CONFIG_METADATA_NAME, config_record)
+        except OSError as exc:
+            error = write_error(self.path, exc) if is_write_failure(exc) else None
+            self._abort(*_exc_info())
+            if error is None:
+                raise
+            raise error from None
         except BaseException:
             self._abort(*_exc_info())
             raise
@@ -174,6 +180,10 @@ class LogWriter:
     def __exit__(self, exc_type, exc, tb) -> bool:
         if exc_type is None:
             self.close()
+        elif is_write_failure(exc):  # a full disk while writing a frame: one error naming the path
+            error = write_error(self.path, exc)
+            self._abort(exc_type, exc, tb)
+            raise error from None
         else:
             self._abort(exc_type, exc, tb)
         return False
@@ -186,7 +196,9 @@ class LogWriter:
     def close(self) -> None:
         """Finish the MCAP (summary, indexes) and rename the temp file onto ``path``.
 
-        Raises :class:`RecorderError` (and leaves no file) when no frame was written.
+        Raises :class:`RecorderError` (and leaves no file) when no frame was written, and
+        :class:`~lcv_replay.errors.OutputError` (naming the path and the free space) when the disk
+        is full or the folder unwritable.
         """
         if self._closed:
             return
@@ -202,6 +214,12 @@ class LogWriter:
             self._drain()
             self._mcap.finish()
             self._stream.close()
+        except OSError as exc:
+            error = write_error(self.path, exc) if is_write_failure(exc) else None  # before the clean-up
+            self._abort(*_exc_info())
+            if error is None:
+                raise
+            raise error from None
         except BaseException:
             self._abort(*_exc_info())
             raise

@@ -67,10 +67,10 @@ class SummarySink(BaseSink):
 
     def on_finish(self, summary: RunSummary) -> None:
         self.summary = summary
+        if self.stream is not None:  # first: a JSON that cannot be written (a full disk) loses no figure
+            print(format_summary(summary), file=self.stream, flush=True)
         if self.json_path is not None:
             write_text_atomic(self.json_path, summary_json(summary))
-        if self.stream is not None:
-            print(format_summary(summary), file=self.stream, flush=True)
 
 
 def read_summary_json(path: str | Path) -> dict[str, Any]:
