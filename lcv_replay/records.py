@@ -12,11 +12,12 @@ Conventions (the same everywhere in lcv-replay):
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Callable, NamedTuple
 
 import numpy as np
+
+from lcv_replay import se2
 
 
 class Pose2D(NamedTuple):
@@ -28,21 +29,15 @@ class Pose2D(NamedTuple):
 
     def compose(self, other: "Pose2D") -> "Pose2D":
         """``self ∘ other``: ``T_a_b ∘ T_b_c = T_a_c``."""
-        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
-        return Pose2D(
-            self.x_m + c * other.x_m - s * other.y_m,
-            self.y_m + s * other.x_m + c * other.y_m,
-            wrap_angle(self.yaw_rad + other.yaw_rad),
-        )
+        return Pose2D(*se2.compose_pose(self, other))
 
     def inverse(self) -> "Pose2D":
         """``T_a_b⁻¹ = T_b_a``."""
-        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
-        return Pose2D(-c * self.x_m - s * self.y_m, s * self.x_m - c * self.y_m, -self.yaw_rad)
+        return Pose2D(*se2.inverse_pose(self))
 
     def between(self, other: "Pose2D") -> "Pose2D":
         """``self⁻¹ ∘ other``: with ``self = T_w_a`` and ``other = T_w_b`` this is ``T_a_b``."""
-        return self.inverse().compose(other)
+        return Pose2D(*se2.between_pose(self, other))
 
     def as_array(self) -> np.ndarray:
         """``(3,)`` float64 array ``[x_m, y_m, yaw_rad]``."""
@@ -50,11 +45,6 @@ class Pose2D(NamedTuple):
 
 
 IDENTITY_POSE = Pose2D(0.0, 0.0, 0.0)
-
-
-def wrap_angle(angle_rad: float) -> float:
-    """Wrap an angle to ``[-pi, pi)``."""
-    return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
 
 
 @dataclass(frozen=True)

@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from lcv_replay.errors import require
+
 
 @dataclass(frozen=True)
 class RetrievalConfig:
@@ -41,8 +43,6 @@ class RetrievalConfig:
     cache_dir: str = ""  # "" = $LCV_CACHE_DIR, else $XDG_CACHE_HOME/lcv-replay/descriptors
 
     def __post_init__(self) -> None:
-        from lcv_replay.config import require
-
         require(self.top_k >= 1, "retrieval.top_k", self.top_k, "an integer >= 1")
         require(self.exclusion_frames >= 0, "retrieval.exclusion_frames", self.exclusion_frames, "an integer >= 0")
         require(1 <= self.code_bits <= 64, "retrieval.code_bits", self.code_bits, "1..64")
