@@ -8,8 +8,10 @@
 * **pacing**, as ``ros2 bag play``: ``rate`` 1.0 is real time by the log's timestamps, ``None`` as
   fast as possible; an injectable :class:`Clock`; falling behind is reported (achieved versus
   requested rate), never silent;
-* **shutdown**: Ctrl-C (SIGINT) stops after the current frame; the sinks still get the summary (as
-  of the last completed window) and are closed, so the .rrd is finalised and the JSON written.
+* **shutdown**: Ctrl-C (SIGINT) or SIGTERM stops after the current frame; the sinks still get the
+  summary (as of the last completed window) and are closed, so the .rrd is finalised and the JSON
+  written. A second signal aborts at once and the sinks remove their temp files
+  (:mod:`lcv_replay.shutdown`).
 
 Frame indices inside a replay are *replay-local*: with ``--start-offset`` the first replayed frame
 is 0, and candidates that point before it are dropped. Everything else lives in its stage module.
@@ -21,8 +23,6 @@ import contextlib
 import dataclasses
 import logging
 import math
-import signal
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,10 +31,11 @@ from typing import Any, Iterable, Iterator, Literal, Protocol, Sequence
 import numpy as np
 
 from lcv_replay.config import ReplayConfig, to_dict
-from lcv_replay.errors import ConfigError, ReplayError
+from lcv_replay.errors import ConfigError, ReplayError, require_seed
 from lcv_replay.evaluation.metrics import absolute_trajectory_error, detection_metrics, top_trajectory
 from lcv_replay.evaluation.truth import LoopTruth, TruthSource, loop_truth
 from lcv_replay.records import Frame, LoopCandidate
+from lcv_replay.shutdown import StopToken, stop_on_signals
 from lcv_replay.sinks.base import (
     FrameUpdate,
     RetrievalUpdate,
@@ -94,6 +95,8 @@ class ReplayOptions:
         _check_option(math.isfinite(self.start_offset_s) and self.start_offset_s >= 0, "--start-offset", self.start_offset_s, "seconds >= 0")
         if self.duration_s is not None:
             _check_option(math.isfinite(self.duration_s) and self.duration_s > 0, "--duration", self.duration_s, "seconds > 0")
+        if self.seed is not None:
+            require_seed(self.seed, "--seed")
         if self.constraints is not None and self.constraints not in CONSTRAINT_SOURCES:
             raise ConfigError(f"--constraints {self.constraints!r} is not allowed", fix="use images, log or both")
 
@@ -245,41 +248,8 @@ class Pacer:
         return PacingReport(self.rate, self.achieved_rate(), self._max_lag_s, self.behind_reports)
 
 
-class StopToken:
-    """Set by Ctrl-C (or a test) to stop the replay after the current frame."""
-
-    def __init__(self) -> None:
-        self._event = threading.Event()
-
-    def request(self) -> None:
-        self._event.set()
-
-    @property
-    def requested(self) -> bool:
-        return self._event.is_set()
-
-
-@contextlib.contextmanager
-def sigint_requests_stop(token: StopToken) -> Iterator[None]:
-    """While active, the first SIGINT sets ``token``; a second one raises ``KeyboardInterrupt``.
-
-    Only possible in the main thread; elsewhere this does nothing (the caller's token still works).
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, frame):  # noqa: ARG001 - signal handler signature
-        if token.requested:
-            raise KeyboardInterrupt
-        token.request()
-        logger.warning("Ctrl-C: stopping after this frame and finalising the outputs (Ctrl-C again to hurry)")
-
-    previous = signal.signal(signal.SIGINT, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
+#: Kept under its old name: the first SIGINT *or SIGTERM* sets the token (see :mod:`lcv_replay.shutdown`).
+sigint_requests_stop = stop_on_signals
 
 
 # --------------------------------------------------------------------------------------- frames
@@ -471,6 +441,10 @@ def _prepare(options: ReplayOptions) -> _Setup:
     path = Path(options.log_path)
     reader = open_log(path, recover=options.recover)
     info = reader.info
+    if info.recorder_warnings:
+        from lcv_replay.log.format import describe_warnings
+
+        logger.warning("%s was recorded with warnings: %s", path, describe_warnings(info.recorder_warnings))
     if not info.has_odometry:
         raise ReplayError(
             "the log has no odometry (/odom): the verifier needs it",
@@ -534,9 +508,11 @@ def replay(
 ) -> RunSummary:
     """Replay ``options.log_path`` into ``sinks``; returns the run summary (also given to the sinks).
 
-    ``clock`` paces the frames (default: the wall clock); ``stop`` (or Ctrl-C when
+    ``clock`` paces the frames (default: the wall clock); ``stop`` (or Ctrl-C or SIGTERM when
     ``handle_sigint``) ends the replay after the current frame with a summary as of the last
-    completed window. Every sink is closed on the way out, whatever happens.
+    completed window; ``stop.exit_code`` then says which signal it was. A second signal raises
+    :class:`~lcv_replay.shutdown.Interrupted`. Every sink is closed on the way out, whatever
+    happens.
 
     Raises:
         LogFormatError: the log is missing or malformed.
@@ -546,7 +522,10 @@ def replay(
     clock = clock or SystemClock()
     stop = stop or StopToken()
     group = SinkGroup(sinks)
-    with group.opened():
+    # The handlers stay until the sinks are closed: a first signal while the outputs are finalised
+    # still lets them finish; a second aborts (Interrupted) and the sinks drop their temp files.
+    guard = stop_on_signals(stop) if handle_sigint else contextlib.nullcontext()
+    with guard, group.opened():
         setup_started = clock.now()
         setup = _prepare(options)
         start = setup.start
@@ -560,9 +539,7 @@ def replay(
         pairs = setup.pairs(options)
         setup_s = clock.now() - setup_started
         loop_started = clock.now()
-        guard = sigint_requests_stop(stop) if handle_sigint else contextlib.nullcontext()
-        with guard:
-            interrupted, pacing = _drive(pairs, run, setup, Pacer(options.rate, clock), clock, stop, loop_started)
+        interrupted, pacing = _drive(pairs, run, setup, Pacer(options.rate, clock), clock, stop, loop_started)
         wall_s = clock.now() - loop_started
         if setup.retrieval is not None and not interrupted and setup.retrieval.retriever.warmup_message():
             logger.warning("%s", setup.retrieval.retriever.warmup_message())
@@ -586,20 +563,16 @@ def replay(
 
 def _drive(pairs, run: "_Run", setup: _Setup, pacer: Pacer, clock: Clock, stop: StopToken, loop_started: float) -> tuple[bool, PacingReport]:
     """The frame loop, then the verifier's final window; returns (interrupted, pacing report)."""
-    pacing: PacingReport | None = None
-    try:
-        for frame, descriptor in pairs:
-            if stop.requested:
-                return True, pacer.report()
-            pacer.wait(frame.stamp_ns)
-            run.frame(rebase_frame(frame, setup.first), descriptor, setup.retrieval, setup.source, clock, loop_started)
-            if stop.requested:
-                return True, pacer.report()
-        pacing = pacer.report()
-        run.finish()
-        return False, pacing
-    except KeyboardInterrupt:  # a second Ctrl-C: stop at once, summarise what is there
-        return True, pacing or pacer.report()
+    for frame, descriptor in pairs:
+        if stop.requested:
+            return True, pacer.report()
+        pacer.wait(frame.stamp_ns)
+        run.frame(rebase_frame(frame, setup.first), descriptor, setup.retrieval, setup.source, clock, loop_started)
+        if stop.requested:
+            return True, pacer.report()
+    pacing = pacer.report()
+    run.finish()
+    return False, pacing
 
 
 class _Run:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from lcv_replay.bench.fuzz import run_cli
+from lcv_replay.cli.inprocess import run_cli
 from tests.replay.helpers import record_square_route
 
 TMPFS_BYTES = 2 * 1024 * 1024

@@ -12,8 +12,8 @@ i])``):
 * ``append_garbage``: 1 to 4096 random bytes, or the file's own first bytes, appended.
 
 Each mutant goes through the CLI commands (by default ``info``, ``info --recover`` and the replay),
-run in-process by one worker subprocess that the harness restarts when a file hangs (per-file
-timeout) or kills it. Every command run is classified:
+run in-process by one worker subprocess (:mod:`lcv_replay.cli.inprocess`) that the harness restarts
+when a file hangs (per-file timeout) or kills it. Every command run is classified:
 
 * ``ok``: exit 0; ``error``: exit 2 with exactly one ``error:`` line, naming the file, and no
   traceback (the promise for bad input);
@@ -29,13 +29,11 @@ from __future__ import annotations
 import contextlib
 import io
 import json
-import logging
 import os
 import select
 import subprocess
 import sys
 import time
-import traceback
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -47,8 +45,6 @@ MUTATIONS: tuple[str, ...] = ("bit_flip", "overwrite", "truncate", "duplicate_ch
 #: Outcome classes, worst last (a file's outcome is the worst of its command runs).
 OUTCOMES: tuple[str, ...] = ("ok", "error", "bad_error", "bad_exit", "traceback", "hang", "crash")
 GOOD_OUTCOMES = frozenset({"ok", "error"})
-#: The worker's address-space limit: a runaway allocation is a MemoryError, not a machine in swap.
-WORKER_MEMORY_LIMIT_BYTES = 12 << 30
 
 
 # -- mutants ----------------------------------------------------------------------------------------
@@ -191,34 +187,6 @@ class CliRun:
         return [line for line in self.stderr.splitlines() if line.startswith("error:")]
 
 
-def run_cli(args: Sequence[str]) -> CliRun:
-    """Run ``lcv-replay ARGS`` in this process with captured stdout/stderr (as a shell would see them).
-
-    The root logger's handlers are swapped for the run, so that the CLI's logging goes to this run's
-    stderr (``logging.basicConfig`` binds its stream once per process).
-    """
-    from lcv_replay.cli import app
-
-    out, err = io.StringIO(), io.StringIO()
-    root = logging.getLogger()
-    saved = root.handlers[:]
-    root.handlers.clear()
-    code, trace = 0, None
-    try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            try:
-                app(args=list(args), prog_name="lcv-replay", standalone_mode=True)
-            except SystemExit as exc:
-                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-    except Exception:  # what a user would see as a Python traceback
-        code, trace = 1, traceback.format_exc()
-    finally:
-        for handler in root.handlers:
-            with contextlib.suppress(Exception):
-                handler.close()
-        root.handlers[:] = saved
-    return CliRun(tuple(args), code, out.getvalue(), err.getvalue(), trace)
-
 
 def classify(run: CliRun, path: str | Path) -> str:
     """The outcome class of one command run on the file ``path`` (see the module docstring)."""
@@ -246,27 +214,9 @@ def default_commands(path: Path, workdir: Path) -> dict[str, list[str]]:
 
 
 # -- the worker process -----------------------------------------------------------------------------
-def _worker_main() -> None:
-    """``python -m lcv_replay.bench.fuzz``: read JSON command lists on stdin, answer JSON results."""
-    with contextlib.suppress(ValueError, OSError):
-        import resource
-
-        resource.setrlimit(resource.RLIMIT_AS, (WORKER_MEMORY_LIMIT_BYTES, WORKER_MEMORY_LIMIT_BYTES))
-    import lcv_replay.cli  # noqa: F401 - import once, before the first timed file
-
-    reply = sys.stdout
-    sys.stdout = sys.stderr  # stray prints must not corrupt the protocol
-    reply.write(json.dumps({"ready": True}) + "\n")
-    reply.flush()
-    for line in sys.stdin:
-        request = json.loads(line)
-        runs = [run_cli(args) for args in request["commands"]]
-        reply.write(json.dumps([asdict(r) for r in runs]) + "\n")
-        reply.flush()
-
-
 class Worker:
-    """One subprocess that runs CLI commands in-process; restarted after a hang or a crash."""
+    """One subprocess (:mod:`lcv_replay.cli.inprocess`) that runs CLI commands in-process; restarted
+    after a hang or a crash."""
 
     def __init__(self, *, timeout_s: float, startup_timeout_s: float = 120.0):
         self.timeout_s = timeout_s
@@ -277,7 +227,7 @@ class Worker:
     def _start(self) -> None:
         env = dict(os.environ, PYTHONFAULTHANDLER="1")
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "lcv_replay.bench.fuzz"],
+            [sys.executable, "-m", "lcv_replay.cli.inprocess"],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env,
         )
         if self._readline(self.startup_timeout_s) is None:
@@ -471,7 +421,3 @@ def format_report(report: FuzzReport) -> str:
     if len(report.bad) > 20:
         lines.append(f"  ... and {len(report.bad) - 20} more (see the JSON)")
     return "\n".join(lines)
-
-
-if __name__ == "__main__":
-    _worker_main()

@@ -20,7 +20,8 @@ _GROUP_OPTIONS = {"--help", "-h", "--version", "--install-completion", "--show-c
 class DefaultReplayGroup(TyperGroup):
     """A group whose default form ``lcv-replay LOG.mcap [options]`` runs the hidden ``replay``.
 
-    It also maps :class:`LcvError` to one ``error:`` line on stderr and the error's exit code.
+    It also maps :class:`LcvError` to one ``error:`` line on stderr and the error's exit code, and
+    handles SIGTERM like Ctrl-C (:mod:`lcv_replay.shutdown`): exit ``128 + signal number``.
     """
 
     def parse_args(self, ctx: typer.Context, args: list[str]) -> list[str]:
@@ -30,9 +31,15 @@ class DefaultReplayGroup(TyperGroup):
 
     def invoke(self, ctx: typer.Context):
         from lcv_replay.fileio import is_write_failure, write_error
+        from lcv_replay.shutdown import exit_code, interrupt_on_signals, signal_name
 
         try:
-            return super().invoke(ctx)
+            with interrupt_on_signals():  # SIGTERM like Ctrl-C; frame loops ask for a graceful stop
+                return super().invoke(ctx)
+        except KeyboardInterrupt as exc:  # a signal that stops at once (the temp files are gone)
+            signum = getattr(exc, "signum", 2)
+            typer.echo(f"interrupted by {signal_name(signum)}: stopped at once", err=True)
+            raise SystemExit(exit_code(signum)) from None
         except LcvError as exc:
             typer.echo(f"error: {exc.format()}", err=True)
             raise SystemExit(exc.exit_code) from None

@@ -75,10 +75,13 @@ def demo_command(
 ) -> None:
     from lcv_replay.cli.replay import build_sinks
     from lcv_replay.config import ReplayConfig
+    from lcv_replay.errors import require_seed
     from lcv_replay.fileio import check_output_path
     from lcv_replay.replay import ReplayOptions, replay
+    from lcv_replay.shutdown import StopToken
     from lcv_replay.sinks.config import RerunOutputs
 
+    require_seed(seed, "--seed")
     check_output_path(save, force=True)
     if summary_json is not None:
         check_output_path(summary_json, force=True)
@@ -86,7 +89,8 @@ def demo_command(
     config = ReplayConfig()
     outputs = RerunOutputs(save=save, spawn=spawn)
     sinks = build_sinks(rerun_config=config.rerun, outputs=outputs, summary_json=summary_json, quiet=quiet)
-    summary = replay(ReplayOptions(log_path=log_path, config=config, method=method, seed=seed), sinks)
+    stop = StopToken()
+    summary = replay(ReplayOptions(log_path=log_path, config=config, method=method, seed=seed), sinks, stop=stop)
     typer.echo(f"\nopen the recording with:  rerun {save}")
     if summary.interrupted:
-        raise typer.Exit(130)
+        raise typer.Exit(stop.exit_code)

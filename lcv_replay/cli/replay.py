@@ -77,10 +77,12 @@ class _ServeUntilInterrupted:
     def on_finish(self, summary) -> None:
         import time
 
+        from lcv_replay.shutdown import stop_requested
+
         typer.echo(f"serving the recording at {self.rerun_sink.served_url} — press Ctrl-C to stop", err=True)
         try:
-            while True:
-                time.sleep(1.0)
+            while not stop_requested():
+                time.sleep(0.2)
         except KeyboardInterrupt:
             pass
 
@@ -116,6 +118,7 @@ def replay_command(
 
     from lcv_replay.config import load_config
     from lcv_replay.replay import ReplayOptions, parse_rate, replay
+    from lcv_replay.shutdown import StopToken
 
     replay_config = load_config(config)
     if image_every is not None:
@@ -145,6 +148,7 @@ def replay_command(
             memory_limit=memory_limit,
         )
     sinks = build_sinks(rerun_config=replay_config.rerun, outputs=outputs, summary_json=summary_json, quiet=quiet)
-    summary = replay(options, sinks)
+    stop = StopToken()
+    summary = replay(options, sinks, stop=stop)
     if summary.interrupted:
-        raise typer.Exit(130)
+        raise typer.Exit(stop.exit_code)

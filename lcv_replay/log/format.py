@@ -25,6 +25,20 @@ RECORDER_CONFIG_METADATA_NAME = "lcv.recorder_config"  # the recorder's full con
 
 FORMAT_VERSION = "1"
 
+#: `lcv` metadata key: what the recorder accepted but warned about, a JSON object of counts.
+RECORDER_WARNINGS_KEY = "recorder_warnings"
+#: Human names of the counts (``lcv-replay info``, the record summary); unknown keys print as they are.
+RECORDER_WARNING_NAMES = {
+    "singular_odometry_information": "odometry edges with a singular or non-positive-definite information matrix",
+    "singular_loop_information": "loop edges with a singular or non-positive-definite information matrix",
+    "duplicate_edges": "duplicate edges (the same two vertices as an earlier edge)",
+}
+
+
+def describe_warnings(counts: dict[str, int]) -> str:
+    """``'3 duplicate edges (...), 1 odometry edges with ...'`` (empty for no warning)."""
+    return ", ".join(f"{n} {RECORDER_WARNING_NAMES.get(key, key)}" for key, n in sorted(counts.items()) if n)
+
 # Written into the `lcv` metadata record so that a log explains itself.
 FRAME_CONVENTIONS = (
     "planar REP-103: x forward, y left, yaw counter-clockwise about +z; /odom is T_odom_base_link, "

@@ -100,6 +100,7 @@ class LogInfo:
     true_loop_count: int = 0
     image_format: str | None = None
     library: str = ""
+    recorder_warnings: dict[str, int] = field(default_factory=dict)  # lcv.recorder_warnings: counts by kind
 
 
 @dataclass
@@ -440,6 +441,9 @@ class LogReader:
                 "the lcv metadata's odometry_information is not a 3x3 JSON matrix", path=self.path, fix="re-record the log"
             ) from None
         stamps = t.stamps_ns
+        warnings = _warning_counts(meta.get(fmt.RECORDER_WARNINGS_KEY))
+        if warnings is None:
+            log.warning("%s: ignoring the unreadable lcv metadata %s", self.path, fmt.RECORDER_WARNINGS_KEY)
         try:
             nominal = float(meta["nominal_rate_hz"])
         except (KeyError, ValueError):
@@ -477,6 +481,7 @@ class LogReader:
             true_loop_count=int(len(t.true_loops)),
             image_format=image_format,
             library=c.library,
+            recorder_warnings=warnings or {},
         )
 
     # -- decoding ----------------------------------------------------------------------------------
@@ -655,6 +660,19 @@ def _match(
     keep = np.ones(len(ib), dtype=bool)
     keep[1:] = ib[1:] != ib[:-1]
     return ia[keep].astype(np.int64), ib[keep].astype(np.int64)
+
+
+def _warning_counts(text: str | None) -> dict[str, int] | None:
+    """The ``recorder_warnings`` metadata value as counts; ``{}`` when absent, ``None`` when unreadable."""
+    if not text:
+        return {}
+    try:
+        value = json.loads(text)
+    except ValueError:
+        return None
+    if not isinstance(value, dict) or not all(isinstance(n, int) and not isinstance(n, bool) for n in value.values()):
+        return None
+    return {str(k): int(n) for k, n in value.items()}
 
 
 def _rows_by_frame(table: np.ndarray, frames: np.ndarray, first: int, last: int) -> dict[int, list]:

@@ -47,6 +47,7 @@ RESERVED_METADATA_KEYS = (
     "odometry_information",
     "image_format",
     "compression",
+    fmt.RECORDER_WARNINGS_KEY,
 )
 
 
@@ -65,6 +66,8 @@ class LogWriter:
         compression: MCAP chunk compression.
         odometry_information: ``(3, 3)`` information matrix of one odometry step (x, y, yaw), if known.
         extra_metadata: more string entries for the ``lcv`` record (not the reserved keys).
+        recorder_warnings: counts of what the recorder accepted with a warning (e.g.
+            ``{"duplicate_edges": 3}``), stored as JSON under ``lcv.recorder_warnings``.
         chunk_size_bytes: target MCAP chunk size; smaller chunks make time-window reads finer.
         encode_threads: image-encoding worker threads; up to ``4 * encode_threads`` frames may be
             queued (encoding) before :meth:`write_frame` blocks. An encoding failure is raised by a
@@ -89,6 +92,7 @@ class LogWriter:
         compression: Literal["zstd", "lz4", "none"] = "zstd",
         odometry_information: np.ndarray | None = None,
         extra_metadata: dict[str, str] | None = None,
+        recorder_warnings: dict[str, int] | None = None,
         chunk_size_bytes: int = 1 << 20,
         encode_threads: int = 2,
     ):
@@ -111,6 +115,8 @@ class LogWriter:
         clash = sorted(set(extra) & set(RESERVED_METADATA_KEYS))
         if clash:
             raise RecorderError(f"extra_metadata may not set the reserved keys {clash}")
+        if recorder_warnings:
+            extra[fmt.RECORDER_WARNINGS_KEY] = json.dumps({str(k): int(v) for k, v in sorted(recorder_warnings.items())})
         try:
             config_record = {str(k): json.dumps(v, sort_keys=True) for k, v in recorder_config.items()}
         except (TypeError, ValueError) as exc:

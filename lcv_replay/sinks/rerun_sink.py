@@ -638,6 +638,12 @@ class RerunSink(BaseSink):
             rec.flush()
         except Exception as exc:  # RuntimeError from the Rust file writer
             failure = exc
+        except BaseException:  # a second Ctrl-C / SIGTERM while flushing: abort, keep no temp file
+            self._finished = False
+            with contextlib.suppress(Exception):
+                rec.disconnect()
+            self._remove_temp()
+            raise
         finally:
             with contextlib.suppress(Exception):
                 rec.disconnect()
@@ -661,11 +667,14 @@ class RerunSink(BaseSink):
                 if not is_write_failure(exc):
                     raise
                 error = write_error(save, exc, what="the Rerun recording")
-        # An error, or not finished: do not leave a half-written recording behind.
-        with contextlib.suppress(FileNotFoundError):
-            self._tmp_path.unlink()
+        self._remove_temp()  # an error, or not finished: do not leave a half-written recording behind
         if error is not None:
             raise error from None
+
+    def _remove_temp(self) -> None:
+        if self._tmp_path is not None:
+            with contextlib.suppress(FileNotFoundError):
+                self._tmp_path.unlink()
 
 
 def _timing_markdown(summary: RunSummary) -> str:

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lcv_replay.bench.fuzz import GOOD_OUTCOMES, MUTATIONS, SeedLog, classify, format_report, mutants, run_cli, run_fuzz
+from lcv_replay.bench.fuzz import GOOD_OUTCOMES, MUTATIONS, SeedLog, classify, format_report, mutants, run_fuzz
+from lcv_replay.cli.inprocess import run_cli
 from tests.replay.helpers import record_square_route
 
 GOLDEN = Path(__file__).resolve().parents[1] / "data" / "golden.mcap"
