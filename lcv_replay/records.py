@@ -12,8 +12,8 @@ Conventions (the same everywhere in lcv-replay):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Callable, NamedTuple
+from dataclasses import dataclass, field, replace
+from typing import Callable, Iterable, NamedTuple
 
 import numpy as np
 
@@ -142,3 +142,49 @@ class Frame:
     right: ImageRef | None = None
     candidates: tuple[LoopCandidate, ...] = ()
     true_loops: tuple[tuple[int, int], ...] = ()
+
+
+@dataclass(frozen=True)
+class FrameWindow:
+    """The frames ``[first, last)`` of a log that a run replays, and the map to replay-local indices.
+
+    Inside a replay the first replayed frame is frame 0: log frame ``k`` is ``k - first``. Loop
+    candidates and labels that reach back before ``first`` are dropped. The reader computes the
+    window once (:meth:`~lcv_replay.log.reader.LogReader.window`); every rebase goes through here.
+    """
+
+    first: int
+    last: int
+
+    @property
+    def frames(self) -> int:
+        """Number of frames in the window."""
+        return max(self.last - self.first, 0)
+
+    def rows(self, per_frame: np.ndarray) -> np.ndarray:
+        """The window's rows of a per-frame array of the whole log (e.g. ``(N, 3)`` ground truth)."""
+        return per_frame[self.first : self.last]
+
+    def pairs(self, pairs: Iterable[tuple[int, int]]) -> tuple[tuple[int, int], ...]:
+        """``(query, match)`` pairs in replay-local indices, in order; those whose match precedes
+        the window are dropped."""
+        return tuple((q - self.first, m - self.first) for q, m in pairs if m >= self.first)
+
+    def candidates(self, candidates: Iterable[LoopCandidate]) -> tuple[LoopCandidate, ...]:
+        """Candidates in replay-local indices; those reaching back before the window are dropped."""
+        return tuple(
+            replace(c, query_frame=c.query_frame - self.first, match_frame=c.match_frame - self.first)
+            for c in candidates
+            if c.match_frame >= self.first and c.query_frame >= self.first
+        )
+
+    def frame(self, frame: Frame) -> Frame:
+        """``frame`` with its index, candidates and labels in replay-local indices."""
+        if self.first == 0:
+            return frame
+        return replace(
+            frame,
+            index=frame.index - self.first,
+            candidates=self.candidates(frame.candidates),
+            true_loops=self.pairs(frame.true_loops),
+        )

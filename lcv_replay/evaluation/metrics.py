@@ -235,6 +235,23 @@ class WindowMetrics:
     ate_rmse_m: float | None
 
 
+def ate_rmse_m(trajectory: np.ndarray | None, ground_truth: np.ndarray | None) -> float | None:
+    """SE(2)-aligned ATE RMSE over the frames that have ground truth; ``None`` without a trajectory,
+    without ground truth, or with fewer than two frames that have both.
+
+    Args:
+        trajectory: ``(M, 3)`` estimate of frames ``0..M-1``.
+        ground_truth: ``(N >= M, 3)`` ground truth, NaN rows where a frame has none.
+    """
+    if trajectory is None or ground_truth is None or len(trajectory) == 0:
+        return None
+    reference = ground_truth[: len(trajectory)]
+    mask = np.all(np.isfinite(reference[:, :2]), axis=1)
+    if mask.sum() < 2:
+        return None
+    return absolute_trajectory_error(np.asarray(trajectory)[mask], reference[mask]).rmse_m
+
+
 def top_trajectory(step: VerifierStep) -> np.ndarray | None:
     """The rank-1 hypothesis's ``(N, 3)`` trajectory from a step, if the step carries it."""
     if step.ranking and step.ranking[0].id in step.trajectories:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol, Sequence
+from typing import TYPE_CHECKING, Callable, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
@@ -92,6 +92,10 @@ class VerifierStep:
         dropped: ``(hypothesis_id, reason)`` for hypotheses dropped (optimiser failure, pruning).
         gate_chi2: the chi-square gate in force in this step, in the declared noise units
             (``ilv+`` calibrates it to the data); ``None`` for methods without one.
+        ambiguous_constraint_ids: constraints the verifier can neither accept nor reject yet:
+            mutually consistent loops that compete with other loops and explain the data about as
+            well (``ilv+``). They are flagged, never accepted (disjoint from
+            ``accepted_constraint_ids``); empty for methods without such a verdict.
     """
 
     frame_index: int
@@ -106,6 +110,7 @@ class VerifierStep:
     timings_s: dict[str, float] = field(default_factory=dict)
     dropped: tuple[tuple[int, str], ...] = ()
     gate_chi2: float | None = None
+    ambiguous_constraint_ids: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -121,6 +126,8 @@ class VerificationResult:
         paper_consistent_ids: constraints consistent with the top hypothesis under the paper's
             T_p test (sec. II-A), for the paper's own precision/recall.
         last_step: the last step (for sinks), if any.
+        ambiguous_constraint_ids: constraints flagged ambiguous at the end (never accepted; see
+            :attr:`VerifierStep.ambiguous_constraint_ids`).
     """
 
     method: str
@@ -130,6 +137,27 @@ class VerificationResult:
     ranking: tuple[HypothesisSummary, ...] = ()
     paper_consistent_ids: tuple[int, ...] = ()
     last_step: VerifierStep | None = None
+    ambiguous_constraint_ids: tuple[int, ...] = ()
+
+
+def result_step(result: VerificationResult, last: VerifierStep | None) -> VerifierStep:
+    """A final :class:`VerifierStep` that carries ``result`` (for a verifier whose last step does
+    not: a batch method that solves in ``result()``, or a last partial window)."""
+    frame_index = len(result.trajectory) - 1
+    window = (last.window_index + 1) if last is not None else 0
+    top_id = result.ranking[0].id if result.ranking else -1
+    return VerifierStep(
+        frame_index=frame_index,
+        window_index=window,
+        new_constraint_ids=(),
+        new_hypotheses=(),
+        generation_edges=(),
+        ranking=tuple(result.ranking),
+        accepted_constraint_ids=tuple(result.accepted_constraint_ids),
+        trajectories={top_id: np.asarray(result.trajectory)},
+        consistency=last.consistency if last is not None else np.zeros((0, 0), dtype=bool),
+        timings_s={},
+    )
 
 
 class Verifier(Protocol):
@@ -149,6 +177,28 @@ class Verifier(Protocol):
 
     def result(self) -> VerificationResult:
         """Finish (process the last partial window) and return the final result."""
+
+
+#: Whether the loop ``(query_frame, match_frame)`` is known to be true.
+PairTruth = Callable[[int, int], bool]
+
+
+@runtime_checkable
+class NeedsTruth(Protocol):
+    """A verifier capability: it must be told which loops are true before its first frame.
+
+    The ``oracle`` (only the true loops: the ATE reference) has it. The replay and ``bench verify``
+    give it the truth that judges the run (:func:`lcv_replay.evaluation.truth.provide_truth`), and
+    refuse the method up front where the log has neither labels nor ground truth.
+    """
+
+    def set_truth(self, is_true: PairTruth) -> None:
+        """Which ``(query_frame, match_frame)`` pairs are true (frame indices as fed to the verifier)."""
+
+
+def needs_truth(verifier: object) -> bool:
+    """Whether ``verifier`` has the :class:`NeedsTruth` capability."""
+    return isinstance(verifier, NeedsTruth)
 
 
 # ----------------------------------------------------------------------------------------------

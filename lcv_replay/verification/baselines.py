@@ -18,9 +18,10 @@ Registered methods (``--method``):
     known inliers, ``weightsTol`` 1e-9 (GTSAM's 1e-4 stops after 1-2 iterations with every
     weight ~1e-5 on KITTI candidates); a loop is accepted when its final weight exceeds 0.5.
 ``oracle``
-    Only the true loops, solved with Levenberg-Marquardt: the reference for ATE. It needs the
-    truth: call :meth:`OracleVerifier.set_true_pairs` before feeding frames (the bench does it
-    from the log's labels, else its ground truth; see :func:`needs_truth`).
+    Only the true loops, solved with Levenberg-Marquardt: the reference for ATE. It has the
+    :class:`~lcv_replay.verification.base.NeedsTruth` capability: the replay and the bench call
+    :meth:`OracleVerifier.set_truth` with the truth that judges the run (the log's labels, else its
+    ground truth) before feeding frames.
 
 All of them are fed frame by frame and never read the future. With ``baselines.solve_every =
 "end"`` (the default) a batch method solves once in :meth:`result`, from the odometry: the classic
@@ -36,7 +37,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Iterable, Sequence
+from typing import Sequence
 
 import numpy as np
 
@@ -48,6 +49,7 @@ from lcv_replay.verification.base import (
     Constraint,
     ConstraintHistory,
     HypothesisSummary,
+    PairTruth,
     VerificationResult,
     VerifierStep,
     checked_frame,
@@ -265,26 +267,26 @@ class IrOnlyVerifier(LeastSquaresVerifier):
 
 
 class OracleVerifier(LeastSquaresVerifier):
-    """``oracle``: only the true loops. Call :meth:`set_true_pairs` before the first solve."""
+    """``oracle``: only the true loops (:class:`~lcv_replay.verification.base.NeedsTruth`: call
+    :meth:`set_truth` before the first solve)."""
 
     name = "oracle"
-    needs_truth = True
 
     def __init__(self, config: VerificationConfig, *, odometry_information=None):
         super().__init__(config, odometry_information=odometry_information)
-        self._true_pairs: frozenset[tuple[int, int]] | None = None
+        self._is_true: PairTruth | None = None
 
-    def set_true_pairs(self, pairs: Iterable[tuple[int, int]]) -> None:
-        """The true ``(query_frame, match_frame)`` pairs (either orientation) of the whole log."""
-        self._true_pairs = frozenset((max(a, b), min(a, b)) for a, b in pairs)
+    def set_truth(self, is_true: PairTruth) -> None:
+        """``is_true(query_frame, match_frame)``: whether a loop is true."""
+        self._is_true = is_true
 
     def select(self, constraints):
-        if self._true_pairs is None:
+        if self._is_true is None:
             raise VerificationError(
                 "the oracle needs the log's true loops",
                 fix="use a log with /ground_truth/loops labels or ground truth, or another method",
             )
-        return tuple(i for i, c in enumerate(constraints) if c.candidate.pair in self._true_pairs)
+        return tuple(i for i, c in enumerate(constraints) if self._is_true(c.query_frame, c.match_frame))
 
 
 class RobustKernelVerifier(BatchVerifier):
@@ -325,11 +327,6 @@ class GncVerifier(BatchVerifier):
         loop_weights = weights[pose_graph.loop_factor_index(n, 0):]
         accepted = tuple(int(i) for i in np.flatnonzero(loop_weights > self.baseline.gnc_accept_weight))
         return BatchSolution(solution.poses, accepted, solution.chi2)
-
-
-def needs_truth(verifier: object) -> bool:
-    """Whether ``verifier`` must be given the log's true pairs (``set_true_pairs``) before use."""
-    return bool(getattr(verifier, "needs_truth", False))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -118,3 +118,14 @@ def test_replay_writes_the_default_rrd_next_to_the_log_and_prints_the_summary(sq
     assert (folder / "square.rrd").is_file()
     assert "lcv-replay summary" in out and f"rerun {folder / 'square.rrd'}" in out
     assert json.loads((folder / "cli.json").read_text())["frames"] == 200
+
+
+def test_the_oracle_on_a_log_without_truth_is_refused_before_the_first_frame(square, tmp_path):
+    from recorders.g2o import G2oOptions, record_g2o
+
+    folder, _, config = square
+    log = tmp_path / "no_truth.mcap"
+    record_g2o(folder / "src" / "square.g2o", log, G2oOptions(auto_siblings=False), force=True)
+    code, out = _cli([str(log), "--method", "oracle", "-c", str(config), "--no-rerun", "--quiet"])
+    _assert_one_line_error(code, out, "no_truth.mcap", "method 'oracle' needs the log's true loops", "--true-loops")
+    assert "accepted" not in out  # refused up front: no summary

@@ -124,7 +124,7 @@ def test_markdown_tables_name_ranks_and_constraints():
 
 @pytest.mark.parametrize("bits", [1, 20, 64])
 def test_code_bits_msb_first(bits):
-    from lcv_replay.replay import code_bits_msb_first
+    from lcv_replay.retrieval.stage import code_bits_msb_first
 
     code = (1 << (bits - 1)) | 1
     out = code_bits_msb_first(code, bits)

@@ -11,8 +11,8 @@ from lcv_replay.errors import VerificationError
 from lcv_replay.evaluation.metrics import absolute_trajectory_error, detection_metrics
 from lcv_replay.evaluation.truth import loop_truth
 from lcv_replay.records import LoopCandidate, Pose2D
-from lcv_replay.verification.base import ConstraintHistory
-from lcv_replay.verification.baselines import IR_ONLY_COUNTS, needs_truth
+from lcv_replay.verification.base import ConstraintHistory, needs_truth
+from lcv_replay.verification.baselines import IR_ONLY_COUNTS
 from lcv_replay.verification.config import BaselineConfig, VerificationConfig
 from lcv_replay.verification.registry import available_methods, make_verifier
 from tests.conftest import shared_path
@@ -60,7 +60,8 @@ def test_every_baseline_runs_incrementally_on_a_synthetic_world(world, method, s
     candidates = _with_measurements(world, world.candidates)
     verifier = make_verifier(method, _config(solve_every), odometry_information=ODOM_INFORMATION)
     if needs_truth(verifier):
-        verifier.set_true_pairs(c.pair for c in world.true_candidates)
+        true_pairs = {c.pair for c in world.true_candidates}
+        verifier.set_truth(lambda query, match: (query, match) in true_pairs)
     result, steps = _feed(verifier, world.odom, candidates)
     n = len(world.odom)
     assert result.method == method
