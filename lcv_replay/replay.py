@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any, Iterable, Iterator, Literal, Sequence
 import numpy as np
 
 from lcv_replay.config import ReplayConfig, to_dict
-from lcv_replay.errors import ConfigError, ReplayError, require_seed
+from lcv_replay.errors import ConfigError, ReplayError, VerificationError, require_seed
 from lcv_replay.evaluation.metrics import ate_rmse_m, detection_metrics, top_trajectory
 from lcv_replay.evaluation.truth import ConstraintTruth, choose_truth_source, provide_truth
 from lcv_replay.pacing import Clock, Pacer, PacingReport, SystemClock
@@ -139,11 +139,6 @@ def resolve_constraint_source(requested: str | None, *, has_images: bool, has_ca
             fix="use --constraints images" if has_images else "record the log with loop candidates",
         )
     return requested
-
-
-# --------------------------------------------------------------------------------------- shutdown
-#: Kept under its old name: the first SIGINT *or SIGTERM* sets the token (see :mod:`lcv_replay.shutdown`).
-sigint_requests_stop = stop_on_signals
 
 
 # --------------------------------------------------------------------------------------- the replay
@@ -277,17 +272,29 @@ def replay(
 
 
 def _drive(pairs: Iterable[tuple[Frame, np.ndarray | None]], run: _Run, pacer: Pacer, stop: StopToken) -> tuple[bool, PacingReport]:
-    """The frame loop, then the verifier's final window; returns (interrupted, pacing report)."""
-    for frame, descriptor in pairs:
-        if stop.requested:
-            return True, pacer.report()
-        pacer.wait(frame.stamp_ns)
-        run.frame(frame, descriptor)
-        if stop.requested:
-            return True, pacer.report()
-    pacing = pacer.report()
-    run.finish()
-    return False, pacing
+    """The frame loop, then the verifier's final window; returns (interrupted, pacing report).
+
+    A numerical breakdown of the verifier (degenerate odometry or constraints in the log) is one
+    :class:`VerificationError` naming the frame, not a traceback.
+    """
+    try:
+        for frame, descriptor in pairs:
+            if stop.requested:
+                return True, pacer.report()
+            pacer.wait(frame.stamp_ns)
+            run.frame(frame, descriptor)
+            if stop.requested:
+                return True, pacer.report()
+        pacing = pacer.report()
+        run.finish()
+        return False, pacing
+    except np.linalg.LinAlgError as exc:
+        raise VerificationError(
+            f"the verifier failed numerically after {run.frames} frames ({exc}): the log's odometry or loop "
+            "constraints are degenerate",
+            path=run.setup.start.log_path,
+            fix="check them with 'lcv-replay info', or try another --method",
+        ) from None
 
 
 class _Run:

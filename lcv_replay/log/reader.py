@@ -119,6 +119,8 @@ class _Tables:
 
 
 _MISSING = -2  # chunk value of a joined row without a message
+# What a JSON message of the wrong shape raises while parsed (a list for an object, deep nesting, ...).
+_JSON_ERRORS = (ValueError, KeyError, TypeError, AttributeError, RecursionError)
 
 
 def open_log(path: str | Path, *, recover: bool = False, stereo_tolerance_ns: int | None = None) -> "LogReader":
@@ -455,14 +457,18 @@ class LogReader:
         for key, value in c.metadata.get(fmt.RECORDER_CONFIG_METADATA_NAME, {}).items():
             try:
                 config[key] = json.loads(value)
-            except ValueError:
+            except (ValueError, RecursionError):
                 config[key] = value
         try:
             information = messages.information_from_json(meta.get("odometry_information"))
-        except (ValueError, TypeError):
+        except (*_JSON_ERRORS, OverflowError):
+            information = np.zeros(0)
+        if information is not None and (information.shape != (3, 3) or fmt.information_problem(information.ravel())):
             raise LogFormatError(
-                "the lcv metadata's odometry_information is not a 3x3 JSON matrix", path=self.path, fix="re-record the log"
-            ) from None
+                "the lcv metadata's odometry_information is not a 3x3 JSON matrix of plausible numbers",
+                path=self.path,
+                fix="re-record the log",
+            )
         stamps = t.stamps_ns
         warnings = _warning_counts(meta.get(fmt.RECORDER_WARNINGS_KEY))
         if warnings is None:
@@ -563,10 +569,11 @@ class LogReader:
         if table is None or table[i]["chunk"] == _MISSING:
             return None
         pose = messages.pose_from_pose_in_frame(self._decode(table[i])[1])
-        if not all(math.isfinite(v) for v in pose):
-            if allow_missing:
+        problem = fmt.pose_problem(*pose)
+        if problem is not None:
+            if allow_missing and problem == "not finite":
                 return None
-            raise self._not_finite(topic, i, pose)
+            raise self._bad_pose(topic, i, pose, problem)
         return pose
 
     def _poses(self, table: np.ndarray, topic: str, *, allow_missing: bool) -> np.ndarray:
@@ -582,14 +589,15 @@ class LogReader:
                     fix="record odometry for every frame",
                 )
             pose = messages.pose_from_pose_in_frame(self._decode(table[i])[1])
-            if not all(math.isfinite(v) for v in pose) and not allow_missing:
-                raise self._not_finite(topic, i, pose)
+            problem = fmt.pose_problem(*pose)
+            if problem is not None and not (allow_missing and problem == "not finite"):
+                raise self._bad_pose(topic, i, pose, problem)
             out[i] = pose
         return out
 
-    def _not_finite(self, topic: str, i: int, pose: Pose2D) -> LogFormatError:
+    def _bad_pose(self, topic: str, i: int, pose: Pose2D, problem: str) -> LogFormatError:
         return LogFormatError(
-            f"{topic} of frame {i} (stamp {int(self._tables.stamps_ns[i])} ns) is not finite: "
+            f"{topic} of frame {i} (stamp {int(self._tables.stamps_ns[i])} ns) is {problem}: "
             f"x={pose.x_m}, y={pose.y_m}, yaw={pose.yaw_rad}",
             path=self.path,
             fix="fix the odometry source and re-record the log",
@@ -599,16 +607,27 @@ class LogReader:
         raw, data = self._decode(row)
         try:
             candidate = messages.candidate_from_json(data)
-        except (ValueError, KeyError, TypeError) as exc:
+        except _JSON_ERRORS as exc:
             raise self._bad_json(fmt.LOOP_CANDIDATES_TOPIC, raw.log_time_ns, exc) from None
         self._check_pair(candidate.pair, fmt.LOOP_CANDIDATES_TOPIC)
+        problem = None
+        if candidate.T_match_query is not None and fmt.pose_problem(*candidate.T_match_query):
+            problem = f"T_match_query {tuple(candidate.T_match_query)} is {fmt.pose_problem(*candidate.T_match_query)}"
+        elif candidate.information is not None and fmt.information_problem(candidate.information):
+            problem = f"information {candidate.information} is {fmt.information_problem(candidate.information)}"
+        if problem is not None:
+            raise LogFormatError(
+                f"{fmt.LOOP_CANDIDATES_TOPIC} candidate {candidate.pair} at {raw.log_time_ns} ns: {problem}",
+                path=self.path,
+                fix="fix the place recognizer's output and re-record the log",
+            )
         return candidate
 
     def _decode_true_loop(self, row: np.void) -> tuple[int, int]:
         raw, data = self._decode(row)
         try:
             pair = messages.true_loop_from_json(data)
-        except (ValueError, KeyError, TypeError) as exc:
+        except _JSON_ERRORS as exc:
             raise self._bad_json(fmt.TRUE_LOOPS_TOPIC, raw.log_time_ns, exc) from None
         self._check_pair(pair, fmt.TRUE_LOOPS_TOPIC)
         return pair
@@ -679,7 +698,7 @@ def _warning_counts(text: str | None) -> dict[str, int] | None:
         return {}
     try:
         value = json.loads(text)
-    except ValueError:
+    except (ValueError, RecursionError):
         return None
     if not isinstance(value, dict) or not all(isinstance(n, int) and not isinstance(n, bool) for n in value.values()):
         return None

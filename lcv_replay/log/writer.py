@@ -107,7 +107,7 @@ class LogWriter:
             raise RecorderError(f"nominal_rate_hz {nominal_rate_hz} must be a positive number")
         if odometry_information is not None:
             odometry_information = np.asarray(odometry_information, dtype=np.float64)
-            if odometry_information.shape != (3, 3) or not np.all(np.isfinite(odometry_information)):
+            if odometry_information.shape != (3, 3) or fmt.information_problem(odometry_information.ravel()):
                 raise RecorderError(
                     f"odometry_information must be a finite (3, 3) matrix, got shape {odometry_information.shape}"
                 )
@@ -311,8 +311,9 @@ class LogWriter:
                 fix="every frame must carry the same kinds of data (ground truth excepted)",
             )
         for name, pose in (("odometry", odom), ("ground truth", ground_truth)):
-            if pose is not None and not all(math.isfinite(float(v)) for v in pose):
-                raise RecorderError(f"frame {index}: {name} {tuple(pose)} is not finite", path=self.path)
+            problem = None if pose is None else fmt.pose_problem(*(float(v) for v in pose))
+            if problem is not None:
+                raise RecorderError(f"frame {index}: {name} {tuple(pose)} is {problem}", path=self.path)
 
         checked = {}
         try:
@@ -358,11 +359,16 @@ class LogWriter:
         if not math.isfinite(float(candidate.similarity)):
             raise RecorderError(f"loop candidate {candidate.pair} has similarity {candidate.similarity}", path=self.path)
         if candidate.information is not None and (
-            len(candidate.information) != 6 or not all(math.isfinite(float(v)) for v in candidate.information)
+            len(candidate.information) != 6 or fmt.information_problem(candidate.information)
         ):
-            raise RecorderError(f"loop candidate {candidate.pair}: information must be 6 finite numbers", path=self.path)
-        if candidate.T_match_query is not None and not all(math.isfinite(float(v)) for v in candidate.T_match_query):
-            raise RecorderError(f"loop candidate {candidate.pair}: T_match_query is not finite", path=self.path)
+            raise RecorderError(
+                f"loop candidate {candidate.pair}: information must be 6 numbers within ±{fmt.MAX_INFORMATION:g}", path=self.path
+            )
+        if candidate.T_match_query is not None and fmt.pose_problem(*(float(v) for v in candidate.T_match_query)):
+            raise RecorderError(
+                f"loop candidate {candidate.pair}: T_match_query is {fmt.pose_problem(*(float(v) for v in candidate.T_match_query))}",
+                path=self.path,
+            )
         self._write_json(
             fmt.LOOP_CANDIDATES_TOPIC,
             messages.LOOP_CANDIDATE_SCHEMA,

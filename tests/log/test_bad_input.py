@@ -21,7 +21,7 @@ from mcap_protobuf.schema import register_schema
 from typer.testing import CliRunner
 
 from lcv_replay.cli import app
-from lcv_replay.errors import LogFormatError
+from lcv_replay.errors import LogFormatError, RecorderError
 from lcv_replay.log import format as fmt
 from lcv_replay.log import messages
 from lcv_replay.log.container import load_container
@@ -169,14 +169,37 @@ def test_unknown_schema_on_a_known_topic(tmp_path):
     _assert_cli_error(path, "/odom has unknown schema 'nav_msgs/msg/Odometry'", "foxglove.PoseInFrame", "record ros2")
 
 
-@pytest.mark.parametrize("bad_value", [math.nan, math.inf])
-def test_non_finite_odometry_names_the_frame(tmp_path, bad_value):
+@pytest.mark.parametrize("bad_value, problem", [(math.nan, "not finite"), (math.inf, "not finite"), (1.3e39, "out of range")])
+def test_non_finite_or_absurd_odometry_names_the_frame(tmp_path, bad_value, problem):
     records = [_odom(i * 100, x=float(i)) for i in range(6)]
     records[3] = _odom(300, x=bad_value)
     path = _raw_log(tmp_path / "nan.mcap", records)
-    _assert_cli_error(path, "/odom of frame 3", "not finite")
+    _assert_cli_error(path, "/odom of frame 3", problem)
     with pytest.raises(LogFormatError, match="frame 3"):
         open_log(path).odometry()
+
+
+def test_an_absurd_candidate_measurement_is_refused(tmp_path):
+    """A bit flip in a candidate's JSON can leave valid JSON with a value no verifier can use."""
+    from lcv_replay.log.writer import LogWriter
+    from lcv_replay.records import LoopCandidate
+
+    path = tmp_path / "cand.mcap"
+    with LogWriter(path, dataset="d", recorder="t", nominal_rate_hz=10, recorder_config={}, compression="none") as w:
+        for i in range(5):
+            w.write_frame(i, i * 100, odom=Pose2D(float(i), 0, 0))
+        w.write_loop_candidate(LoopCandidate(4, 1, T_match_query=Pose2D(0.5, 0.0, 0.0), information=(100.0, 0, 0, 100.0, 0, 100.0)), 400)
+    from lcv_replay.bench.fuzz import plain_copy
+
+    data = plain_copy(path)  # no CRCs: the edit below is not caught as damage
+    assert data.count(b'"x_m":0.5') == 1
+    data = data.replace(b'"x_m":0.5', b'"x_m":9e9')
+    bad = tmp_path / "absurd.mcap"
+    bad.write_bytes(data)
+    _assert_cli_error(bad, "/loop_candidates candidate (4, 1)", "T_match_query", "out of range")
+    with pytest.raises(RecorderError, match="out of range"):
+        with LogWriter(tmp_path / "w.mcap", dataset="d", recorder="t", nominal_rate_hz=10, recorder_config={}) as w:
+            w.write_frame(0, 0, odom=Pose2D(2e8, 0.0, 0.0))
 
 
 def test_timestamps_going_backwards(tmp_path):
