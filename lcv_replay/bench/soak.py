@@ -164,14 +164,38 @@ class SoakReport:
     def _at(self, frames: int) -> SoakSample | None:
         return next((s for s in self.samples if s.frames >= frames), None)
 
+    def _window(self) -> list[SoakSample]:
+        """The samples of the last ``window_frames`` frames (its first sample included)."""
+        if not self.samples:
+            return []
+        start = self.samples[-1].frames - self.window_frames
+        return [s for s in self.samples if s.frames >= start]
+
     @property
     def rss_growth(self) -> float | None:
-        """Relative RSS growth over the last ``window_frames`` frames."""
-        if not self.samples:
+        """Relative RSS growth over the last ``window_frames`` frames, from a least-squares line.
+
+        RSS jumps by tens of MB between two samples (transient arrays of a verifier step), so two
+        single samples would mostly measure that jitter; the line through all samples of the
+        window does not.
+        """
+        window = self._window()
+        if len(window) < 3:
             return None
-        start = self._at(self.samples[-1].frames - self.window_frames)
-        end = self.samples[-1]
-        return None if start is None or start is end else (end.rss_mb - start.rss_mb) / start.rss_mb
+        frames = np.array([s.frames for s in window], dtype=np.float64)
+        rss = np.array([s.rss_mb for s in window])
+        slope, intercept = np.polyfit(frames, rss, 1)
+        start = slope * frames[0] + intercept
+        return float(slope * (frames[-1] - frames[0]) / start)
+
+    @property
+    def rss_growth_kb_per_frame(self) -> float | None:
+        """The same line's slope, in kB per frame."""
+        window = self._window()
+        if len(window) < 3:
+            return None
+        slope = np.polyfit([s.frames for s in window], [s.rss_mb for s in window], 1)[0]
+        return float(slope * 1e3)
 
     @property
     def time_ratio(self) -> float | None:
@@ -193,6 +217,7 @@ class SoakReport:
             "rss_start_mb": self.rss_start_mb,
             "rss_growth_last_frames": self.window_frames,
             "rss_growth": self.rss_growth,
+            "rss_growth_kb_per_frame": self.rss_growth_kb_per_frame,
             "time_per_frame_ratio": self.time_ratio,
             "samples": [dataclasses.asdict(s) for s in self.samples],
             "summary": self.summary,
@@ -225,8 +250,11 @@ def format_report(report: SoakReport) -> str:
     growth, ratio = report.rss_growth, report.time_ratio
     lines.append("")
     lines.append(
-        f"RSS at start {report.rss_start_mb:.0f} MB; growth over the last {report.window_frames} frames: "
-        + ("n/a" if growth is None else f"{100 * growth:+.1f} % (goal < 10 %: {'met' if growth < 0.10 else 'NOT met'})")
+        f"RSS at start {report.rss_start_mb:.0f} MB; growth over the last {report.window_frames} frames (line fit): "
+        + ("n/a" if growth is None else (
+            f"{100 * growth:+.1f} %, {report.rss_growth_kb_per_frame:.2f} kB/frame "
+            f"(goal < 10 %: {'met' if growth < 0.10 else 'NOT met'})"
+        ))
     )
     lines.append(
         "time per frame, last 3 samples / first 3 of that window: "
