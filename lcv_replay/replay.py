@@ -69,6 +69,10 @@ class ReplayOptions:
         start_offset_s, duration_s: the time range to replay (``None`` duration: to the end).
         seed: overrides the retrieval and verification seeds when given.
         recover: read a truncated log's complete chunks.
+        open_reader: how to open the log, ``open_reader(path, recover=...)``; ``None`` is
+            :func:`lcv_replay.log.reader.open_log`. A reader mode such as the follower of a log
+            still being written (:func:`lcv_replay.log.follow.follow_log`) plugs in here; the
+            replay cannot tell the difference.
     """
 
     log_path: Path
@@ -80,6 +84,7 @@ class ReplayOptions:
     duration_s: float | None = None
     seed: int | None = None
     recover: bool = False
+    open_reader: Any = None
 
     def __post_init__(self) -> None:
         if self.rate is not None:
@@ -141,6 +146,11 @@ def resolve_constraint_source(requested: str | None, *, has_images: bool, has_ca
     return requested
 
 
+# --------------------------------------------------------------------------------------- shutdown
+#: The first SIGINT *or SIGTERM* sets the token; a second aborts (:func:`lcv_replay.shutdown.stop_on_signals`).
+sigint_requests_stop = stop_on_signals
+
+
 # --------------------------------------------------------------------------------------- the replay
 @dataclass
 class _Setup:
@@ -173,7 +183,7 @@ def _prepare(options: ReplayOptions) -> _Setup:
     from lcv_replay.verification.registry import make_verifier
 
     path = Path(options.log_path)
-    reader = open_log(path, recover=options.recover)
+    reader = (options.open_reader or open_log)(path, recover=options.recover)
     info = reader.info
     if info.recorder_warnings:
         from lcv_replay.log.format import describe_warnings
@@ -198,14 +208,22 @@ def _prepare(options: ReplayOptions) -> _Setup:
             fix="choose --start-offset/--duration inside the log",
         )
     verifier = make_verifier(config.verification.method, config.verification, odometry_information=info.odometry_information)
-    retrieval = RetrievalStage(config.retrieval, path) if source in ("images", "both") else None
+    if info.growing and config.retrieval.fit == "whole-log":
+        raise ReplayError(
+            "retrieval.fit = 'whole-log' needs the whole log before the first frame, but the log is still being written",
+            path=path,
+            fix="use retrieval.fit = 'online' (the paper's) to follow a log",
+        )
+    # A file still being written has no content hash yet: no descriptor cache.
+    retrieval = RetrievalStage(config.retrieval, path, cache=not info.growing) if source in ("images", "both") else None
 
     ground_truth = window.rows(reader.ground_truth()) if info.has_ground_truth else None
     if ground_truth is not None and not np.any(np.isfinite(ground_truth[:, 0])):
         ground_truth = None
-    true_pairs = window.pairs(reader.true_loops()) if info.has_labels else None
     truth_source = choose_truth_source(source, has_labels=info.has_labels, has_ground_truth=ground_truth is not None)
-    truth = ConstraintTruth(truth_source, true_pairs, ground_truth, config.verification.consistency_radius_m)
+    # Labels and ground truth reach the truth with their frames (_Run.frame): a log still being
+    # written is judged like a finished one.
+    truth = ConstraintTruth(truth_source, None, None, config.verification.consistency_radius_m)
     provide_truth(verifier, truth, method=config.verification.method, path=path)  # the oracle, or refused here
     stamps = window.rows(reader.frame_stamps_ns)
     start = RunStart(
@@ -285,6 +303,8 @@ def _drive(pairs: Iterable[tuple[Frame, np.ndarray | None]], run: _Run, pacer: P
             run.frame(frame, descriptor)
             if stop.requested:
                 return True, pacer.report()
+        if stop.requested:  # the frames ended because of the stop (a follower waiting for data)
+            return True, pacer.report()
         pacing = pacer.report()
         run.finish()
         return False, pacing
@@ -304,7 +324,6 @@ class _Run:
         self.setup = setup
         self.verifier: Verifier = setup.verifier
         self.truth = setup.truth
-        self.ground_truth = setup.start.ground_truth
         self.sinks = sinks
         self.clock = clock
         self.loop_started = clock.now()
@@ -326,6 +345,7 @@ class _Run:
         if self.first_stamp is None:
             self.first_stamp = local.stamp_ns
         self.last_stamp = local.stamp_ns
+        self.truth.observe(local)
         self.verifier.add_frame(local.index, local.odom)
         candidates: list[LoopCandidate] = []
         retrieval_update = None
@@ -368,7 +388,7 @@ class _Run:
             frame_index=frame_index,
             constraints=arrived,
             detection=detection_metrics(accepted_ids, self.truth.as_loop_truth(arrived)),
-            ate_rmse_m=ate_rmse_m(trajectory, self.ground_truth),
+            ate_rmse_m=ate_rmse_m(trajectory, self.truth.ground_truth),
             hypotheses=len(ranking) if ranking else None,
         )
 

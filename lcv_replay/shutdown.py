@@ -83,10 +83,15 @@ def stop_requested() -> bool:
     return bool(_active) and _active[-1].requested
 
 
+def current_signal() -> int:
+    """The signal that set the innermost active token (SIGINT when none did)."""
+    return (_active[-1].signum if _active else None) or signal.SIGINT
+
+
 def raise_if_stopped() -> None:
     """Raise :class:`Interrupted` if a stop was requested (for a loop that has done nothing to keep yet)."""
     if stop_requested():
-        raise Interrupted(_active[-1].signum or signal.SIGINT)
+        raise Interrupted(current_signal())
 
 
 def _in_main_thread() -> bool:

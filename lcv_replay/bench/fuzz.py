@@ -209,7 +209,7 @@ def default_commands(path: Path, workdir: Path) -> dict[str, list[str]]:
     return {
         "info": ["info", str(path)],
         "info --recover": ["info", str(path), "--recover"],
-        "replay": [str(path), "--no-rerun", "--quiet", "--summary-json", str(workdir / "summary.json")],
+        "replay": [str(path), "--no-rerun", "--quiet", "--summary-json", str(workdir / "summary.json"), "--force"],
     }
 
 

@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from lcv_replay.cli.app import bench_app
+from lcv_replay.cli.app import bench_app, check_outputs, force_option
 
 _REPO = Path(__file__).resolve().parents[2]
 GOLDEN_LOG = _REPO / "tests" / "data" / "golden.mcap"
@@ -47,16 +47,18 @@ def bench_fuzz_command(
     timeout_s: float = typer.Option(60.0, "--timeout", help="Seconds per file before it counts as a hang."),
     data: Optional[Path] = typer.Option(None, "--data", help="Shared data folder (default $LCV_SHARED_DATA, else ../shared/data)."),
     workdir: Path = typer.Option(Path("bench-out/fuzz"), "--workdir", help="Work folder: the mutant, and every file that was not ok/error (bad/)."),
-    output: Path = typer.Option(Path("bench-out/fuzz.json"), "-o", "--output", help="JSON results (overwritten)."),
+    output: Path = typer.Option(Path("bench-out/fuzz.json"), "-o", "--output", help="JSON results."),
+    force: bool = force_option("the JSON results"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress lines."),
 ) -> None:
     from lcv_replay.bench.fuzz import GOOD_OUTCOMES, SeedLog, format_report, run_fuzz
     from lcv_replay.errors import ConfigError, require_seed
-    from lcv_replay.fileio import check_output_path, write_text_atomic
+    from lcv_replay.fileio import write_text_atomic
     from lcv_replay.shutdown import StopToken, stop_on_signals
 
     require_seed(seed, "--seed")
-    check_output_path(output, force=True)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    check_outputs(output, force=force)
     workdir.mkdir(parents=True, exist_ok=True)
     paths = list(log or [])
     if not paths:
@@ -108,15 +110,17 @@ def bench_soak_command(
     rerun: bool = typer.Option(True, "--rerun/--no-rerun", help="Write the Rerun recording too, as a replay does by default."),
     data: Optional[Path] = typer.Option(None, "--data", help="Shared data folder (default $LCV_SHARED_DATA, else ../shared/data)."),
     workdir: Path = typer.Option(Path("bench-out/soak"), "--workdir", help="Where the chained log and the recording go."),
-    output: Path = typer.Option(Path("bench-out/soak.json"), "-o", "--output", help="JSON results (overwritten)."),
+    output: Path = typer.Option(Path("bench-out/soak.json"), "-o", "--output", help="JSON results."),
+    force: bool = force_option("the JSON results"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress lines."),
 ) -> None:
     from lcv_replay.bench.soak import build_soak_log, format_report, run_soak
     from lcv_replay.bench.suite import resolve_data_dir
-    from lcv_replay.fileio import check_output_path, write_text_atomic
+    from lcv_replay.fileio import write_text_atomic
     from lcv_replay.shutdown import StopToken, stop_on_signals
 
-    check_output_path(output, force=True)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    check_outputs(output, force=force)
     data_dir = resolve_data_dir(data)
     workdir.mkdir(parents=True, exist_ok=True)
     log = workdir / f"soak-{frames}-alpha{alpha}.mcap"

@@ -52,12 +52,12 @@ def test_fuzzed_logs_end_in_one_error_line_or_success(seeds, tmp_path):
 
 
 def test_the_classifier_sees_a_traceback(tmp_path, monkeypatch):
-    import lcv_replay.log.reader as reader
+    import lcv_replay.log.inspect as inspect
 
     def broken(*args, **kwargs):
         raise KeyError("boom")
 
-    monkeypatch.setattr(reader, "open_log", broken)
+    monkeypatch.setattr(inspect, "format_info", broken)
     run = run_cli(["info", str(GOLDEN)])
     assert classify(run, GOLDEN) == "traceback" and "KeyError" in run.traceback
 
