@@ -79,23 +79,17 @@ def plain_copy(path: str | Path) -> bytes:
     from mcap.reader import make_reader
     from mcap.writer import CompressionType, Writer
 
+    from lcv_replay.log.writer import MessageCopier
+
     out = io.BytesIO()
     with open(path, "rb") as f:
         reader = make_reader(f)
         header = reader.get_header()
         writer = Writer(out, chunk_size=4096, compression=CompressionType.NONE, enable_crcs=False)
         writer.start(profile=header.profile, library=header.library)
-        schemas: dict[int, int] = {}
-        channels: dict[int, int] = {}
+        copier = MessageCopier(writer)
         for schema, channel, message in reader.iter_messages(log_time_order=False):
-            if channel.id not in channels:
-                schema_id = 0
-                if schema is not None:
-                    if schema.id not in schemas:
-                        schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
-                    schema_id = schemas[schema.id]
-                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, schema_id, dict(channel.metadata))
-            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time, message.sequence)
+            copier.add(schema, channel, message)
         for record in reader.iter_metadata():
             writer.add_metadata(record.name, dict(record.metadata))
         writer.finish()

@@ -603,3 +603,26 @@ def _exc_info():
     import sys
 
     return sys.exc_info()
+
+
+class MessageCopier:
+    """Copies messages read from one MCAP (``mcap.reader`` triples) into an ``mcap.writer.Writer``,
+    registering each schema and channel once (``lcv-replay vo``, the fuzz benchmark's plain copies)."""
+
+    def __init__(self, writer: McapWriter):
+        self.writer = writer
+        self._schemas: dict[int, int] = {}
+        self._channels: dict[int, int] = {}
+
+    def add(self, schema: Any, channel: Any, message: Any) -> None:
+        """Write ``message`` of ``channel`` (with ``schema``, or ``None``) as it was."""
+        channel_id = self._channels.get(channel.id)
+        if channel_id is None:
+            schema_id = 0
+            if schema is not None:
+                if schema.id not in self._schemas:
+                    self._schemas[schema.id] = self.writer.register_schema(schema.name, schema.encoding, schema.data)
+                schema_id = self._schemas[schema.id]
+            channel_id = self.writer.register_channel(channel.topic, channel.message_encoding, schema_id, dict(channel.metadata))
+            self._channels[channel.id] = channel_id
+        self.writer.add_message(channel_id, message.log_time, message.data, message.publish_time, message.sequence)

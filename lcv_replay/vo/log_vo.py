@@ -224,6 +224,8 @@ def write_log_with_odometry(
     from mcap.writer import CompressionType, Writer
     from mcap_protobuf.schema import register_schema
 
+    from lcv_replay.log.writer import MessageCopier
+
     source, out = Path(source), Path(out)
     refuse_input_as_output(source, out)
     if len(stamps_ns) != len(poses):
@@ -234,8 +236,7 @@ def write_log_with_odometry(
         header = reader.get_header()
         writer = Writer(fout, chunk_size=1 << 20, compression=CompressionType.ZSTD, enable_crcs=True)
         writer.start(profile=header.profile, library=f"lcv-replay/{__version__} vo (from {header.library})")
-        schemas: dict[int, int] = {}
-        channels: dict[int, int] = {}
+        copier = MessageCopier(writer)
         odom_channel = tf_channel = None
         pending = 0
 
@@ -264,14 +265,7 @@ def write_log_with_odometry(
                     )
                 continue
             flush_until(message.log_time)
-            if channel.id not in channels:
-                schema_id = 0
-                if schema is not None:
-                    if schema.id not in schemas:
-                        schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
-                    schema_id = schemas[schema.id]
-                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, schema_id, dict(channel.metadata))
-            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time, message.sequence)
+            copier.add(schema, channel, message)
         flush_until(None)
         for record in reader.iter_metadata():
             data = dict(record.metadata)
