@@ -50,7 +50,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Iterable, Literal
 
-from lcv_replay.errors import ConfigError
+from lcv_replay.errors import ConfigError, require_seed
 
 LoopMeasurements = Literal["as-recorded", "same-place"]
 
@@ -200,6 +200,13 @@ def _typed(value: Any, kind: type | tuple[type, ...], key: str, path: Path) -> A
     return value
 
 
+def _seed(value: Any, key: str, path: Path) -> int:
+    try:
+        return require_seed(value, f"suite key '{key}'")
+    except ConfigError as exc:
+        raise ConfigError(exc.message, path=path, fix=exc.fix) from None
+
+
 def _list_of(table: dict, key: str, kind: type, path: Path, default: Iterable) -> tuple:
     if key not in table:
         return tuple(default)
@@ -255,7 +262,7 @@ def load_suite_file(path: str | Path, *, _seen: tuple[Path, ...] = ()) -> Suite:
                 _list_of(table, "outliers", int, path, VERTIGO_OUTLIERS),
                 _list_of(table, "modes", str, path, VERTIGO_MODES),
                 group_size=_typed(table.get("group_size", 10), int, "vertigo.group_size", path),
-                seed=_typed(table.get("seed", 0), int, "vertigo.seed", path),
+                seed=_seed(table.get("seed", 0), "vertigo.seed", path),
             )
         )
     for table in _typed(data.get("case", []), list, "case", path):
@@ -272,7 +279,7 @@ def load_suite_file(path: str | Path, *, _seen: tuple[Path, ...] = ()) -> Suite:
                 outliers=_typed(table.get("outliers", 0), int, "case.outliers", path),
                 outlier_mode=_typed(table.get("outlier_mode", "random"), str, "case.outlier_mode", path),
                 group_size=_typed(table.get("group_size", 10), int, "case.group_size", path),
-                seed=_typed(table.get("seed", 0), int, "case.seed", path),
+                seed=_seed(table.get("seed", 0), "case.seed", path),
                 loop_measurements=_measurements(table.get("loop_measurements", "as-recorded"), path),
             )
         )

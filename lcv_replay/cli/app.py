@@ -103,7 +103,8 @@ class LcvTyper(typer.Typer):
 class DefaultReplayGroup(TyperGroup):
     """A group whose default form ``lcv-replay LOG.mcap [OPTIONS]`` runs the ``replay`` command.
 
-    It also maps :class:`LcvError` to one ``error:`` line on stderr and the error's exit code.
+    It also maps :class:`LcvError` to one ``error:`` line on stderr and the error's exit code, and
+    handles SIGTERM like Ctrl-C (:mod:`lcv_replay.shutdown`): exit ``128 + signal number``.
     """
 
     def format_usage(self, ctx, formatter) -> None:
@@ -116,11 +117,25 @@ class DefaultReplayGroup(TyperGroup):
         return super().parse_args(ctx, args)
 
     def invoke(self, ctx: typer.Context):
+        from lcv_replay.fileio import is_write_failure, write_error
+        from lcv_replay.shutdown import exit_code, interrupt_on_signals, signal_name
+
         try:
-            return super().invoke(ctx)
+            with interrupt_on_signals():  # SIGTERM like Ctrl-C; frame loops ask for a graceful stop
+                return super().invoke(ctx)
+        except KeyboardInterrupt as exc:  # a signal that stops at once (the temp files are gone)
+            signum = getattr(exc, "signum", 2)
+            typer.echo(f"interrupted by {signal_name(signum)}: stopped at once", err=True)
+            raise SystemExit(exit_code(signum)) from None
         except LcvError as exc:
             typer.echo(f"error: {exc.format()}", err=True)
             raise SystemExit(exc.exit_code) from None
+        except OSError as exc:  # a full disk or unwritable folder that no writer caught (mkdir, ...)
+            if not (is_write_failure(exc) and exc.filename):
+                raise
+            error = write_error(exc.filename, exc, what="there")
+            typer.echo(f"error: {error.format()}", err=True)
+            raise SystemExit(error.exit_code) from None
 
 
 app = LcvTyper(

@@ -46,7 +46,7 @@ def bench_retrieval(
     """
     from lcv_replay.bench.retrieval import bench_backend, list_images, load_truth_matrix, query_frames, read_image
     from lcv_replay.config import load_config, replace_in
-    from lcv_replay.errors import ConfigError, RetrievalError
+    from lcv_replay.errors import ConfigError, RetrievalError, require_seed
     from lcv_replay.fileio import check_output_path
     from lcv_replay.retrieval.descriptors import available_backends
 
@@ -60,6 +60,8 @@ def bench_retrieval(
         raise ConfigError(f"--precision {precision!r} is not known", fix="use 'fp32' or 'bf16'")
     if pooling is not None and pooling not in ("avg", "gem", "multi"):
         raise ConfigError(f"--pooling {pooling!r} is not known", fix="use 'avg', 'gem' or 'multi'")
+    if seed is not None:
+        require_seed(seed, "--seed")
     config = replace_in(
         load_config(config_file).retrieval,
         exclusion_frames=exclude_frames,

@@ -23,6 +23,13 @@ def _num(value) -> str:
     return "–" if value is None else f"{value:.3f}"
 
 
+def _check_seed(seed: Optional[int]) -> None:
+    if seed is not None:
+        from lcv_replay.errors import require_seed
+
+        require_seed(seed, "--seed")
+
+
 @bench_app.command(
     "verify",
     help=(
@@ -44,6 +51,7 @@ def bench_verify_command(
     from lcv_replay.verification.registry import make_verifier
 
     verification = _load_verification_config(config)
+    _check_seed(seed)
     for name in method:  # unknown methods fail before any log is read
         make_verifier(name, verification)
     check_outputs(json_out, force=force)
@@ -99,6 +107,7 @@ def bench_suite_command(
         raise ConfigError("--quick and --suite are exclusive", fix="pass one of them")
     chosen = get_suite("quick" if quick else (suite or "standard"))
     verification = _load_verification_config(config)
+    _check_seed(seed)
     data_dir = resolve_data_dir(data)
     workdir = workdir or default_workdir()
     check_outputs(json_out, force=force)
@@ -148,7 +157,7 @@ def bench_suite_command(
                 chosen, data_dir=data_dir, workdir=workdir, config=verification, methods=methods,
                 seed=seed, progress=on_event, on_row=on_row, distribute=None if connected is None else on_cluster(connected),
             )
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as interrupt:  # Ctrl-C or SIGTERM (lcv_replay.shutdown.Interrupted)
         from lcv_replay.config import to_dict
 
         partial = SuiteReport(
@@ -157,7 +166,7 @@ def bench_suite_command(
         )
         write_report(partial)
         typer.echo(f"interrupted after {len(done_rows)} runs" + (f"; partial report in {json_out}" if json_out else ""), err=True)
-        raise typer.Exit(130) from None
+        raise typer.Exit(getattr(interrupt, "exit_code", 130)) from None
 
     reused = sum(1 for b in report.builds if b.reused)
     typer.echo(f"suite {report.suite}: {len(chosen.cases)} cases x {len(methods)} methods in {report.wall_time_s:.1f} s "

@@ -115,7 +115,7 @@ def _progress(quiet: bool) -> Iterator:
 def bench_vo_command(
     frames: int = typer.Option(1500, "--frames", min=20, help="Frames of the synthetic route for the drift table."),
     resolution: str = typer.Option("640x480", "--resolution", help="Image size WIDTHxHEIGHT for drift and speed."),
-    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the synthetic world and route."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the synthetic world and route."),
     noise: Optional[list[float]] = typer.Option(None, "--noise", help="Sensor noise (grey-level sigma) of a drift row; repeat (default: 0 and 2)."),
     speed_pairs: int = typer.Option(200, "--speed-pairs", min=10, help="Pre-rendered pairs for the speed measurement."),
     speed_runs: int = typer.Option(5, "--speed-runs", min=1, help="Timed runs over them (median reported)."),
@@ -134,8 +134,10 @@ def bench_vo_command(
     from lcv_replay.cli.record_synthetic import parse_resolution
     from lcv_replay.cli.vo import load_vo_config
     from lcv_replay.config import load_config, to_dict
+    from lcv_replay.errors import require_seed
     from lcv_replay.fileio import write_text_atomic
 
+    require_seed(seed, "--seed")
     width_px, height_px = parse_resolution(resolution)
     config = load_vo_config(vo_config)
     output.parent.mkdir(parents=True, exist_ok=True)

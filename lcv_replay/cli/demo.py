@@ -78,9 +78,12 @@ def demo_command(
 ) -> None:
     from lcv_replay.cli.replay import build_sinks
     from lcv_replay.config import ReplayConfig
+    from lcv_replay.errors import require_seed
     from lcv_replay.replay import ReplayOptions, replay
+    from lcv_replay.shutdown import StopToken
     from lcv_replay.sinks.config import RerunOutputs
 
+    require_seed(seed, "--seed")
     check_outputs(summary_json, report, force=force, folder=export)
     check_outputs(save or DEFAULT_DEMO_RRD, force=force or save is None)  # the default recording is replaced
     save = save or DEFAULT_DEMO_RRD
@@ -91,6 +94,7 @@ def demo_command(
     log_path = ensure_demo_log(frames, seed, DEMO_WIDTH_PX, DEMO_HEIGHT_PX, rerecord=rerecord, quiet=quiet)
     sinks = build_sinks(rerun_config=config.rerun, outputs=outputs, summary_json=summary_json, quiet=quiet,
                         export=export, report=report)
-    summary = replay(ReplayOptions(log_path=log_path, config=config, method=method, seed=seed), sinks)
+    stop = StopToken()
+    summary = replay(ReplayOptions(log_path=log_path, config=config, method=method, seed=seed), sinks, stop=stop)
     if summary.interrupted:
-        raise typer.Exit(130)
+        raise typer.Exit(stop.exit_code)

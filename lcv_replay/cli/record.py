@@ -102,15 +102,34 @@ def recording_progress(description: str, *, quiet: bool) -> Iterator:
         yield update
 
 
+def run_recording(record, *, quiet: bool) -> None:
+    """Run ``record()`` (returns ``RecordStats``) where Ctrl-C or SIGTERM stops it after the current frame.
+
+    The log of the frames so far is closed and summarised, and the command exits ``128 + signal``
+    (130, 143); a second signal aborts at once and leaves no file (:mod:`lcv_replay.shutdown`).
+    """
+    from lcv_replay.shutdown import StopToken, stop_on_signals
+
+    stop = StopToken()
+    with stop_on_signals(stop, what="stopping after this frame and closing the log"):
+        stats = record()
+    if not quiet or stats.interrupted:
+        typer.echo(stats.summary())
+    if stats.interrupted:
+        raise typer.Exit(stop.exit_code)
+
+
 def _run_recorder(name: str, source, out: Path, options, *, force: bool, quiet: bool, live: bool = False) -> None:
     """Run the registered recorder ``name`` with a progress bar, then print its one-line summary."""
     from recorders import get_recorder
 
     record = get_recorder(name).load()
-    with recording_progress(name, quiet=quiet) as progress:
-        stats = record(source, out, options, force=force, progress=progress, live=live)
-    if not quiet:
-        typer.echo(stats.summary())
+
+    def run():
+        with recording_progress(name, quiet=quiet) as progress:
+            return record(source, out, options, force=force, progress=progress, live=live)
+
+    run_recording(run, quiet=quiet)
 
 
 @record_app.command("g2o")

@@ -15,7 +15,7 @@ from typing import Iterator
 import typer
 
 from lcv_replay.cli.app import bench_app, check_outputs, force_option, record_app
-from lcv_replay.cli.record import ImageFormatChoice
+from lcv_replay.cli.record import ImageFormatChoice, run_recording
 from lcv_replay.errors import ConfigError
 
 
@@ -68,7 +68,7 @@ def _progress_bar(quiet: bool) -> Iterator:
 def record_synthetic_command(
     out: Path = typer.Option(..., "--out", "-o", help="Output .mcap file (written atomically)."),
     frames: int = typer.Option(1500, "--frames", min=1, help="Frames to record (~0.8 m of route each at 10 Hz)."),
-    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the world, its textures, the route and the odometry noise."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the world, its textures, the route and the odometry noise."),
     resolution: str = typer.Option("640x480", "--resolution", help="Image size WIDTHxHEIGHT, e.g. 640x480 or 320x240."),
     odometry: OdometryChoice = typer.Option(OdometryChoice.simulated, "--odometry", case_sensitive=False, help="simulated: true motion with drift; vo: stereo VO on the rendered images."),
     drift_translation_pct: float = typer.Option(1.0, "--drift-translation-pct", help="Per-step translation noise, % of the step length (standard deviation)."),
@@ -104,10 +104,11 @@ def record_synthetic_command(
         image_format=image_format.value,  # type: ignore[arg-type]
         jpeg_quality=jpeg_quality,
     )
-    with _progress_bar(quiet) as progress:
-        stats = record_synthetic(out, options, force=force, progress=progress, live=live)
-    if not quiet:
-        typer.echo(stats.summary())
+    def run():
+        with _progress_bar(quiet) as progress:
+            return record_synthetic(out, options, force=force, progress=progress, live=live)
+
+    run_recording(run, quiet=quiet)
 
 
 @bench_app.command("synthetic", help="Recorder benchmark: frames/s, CPU per frame and MB per 1000 frames of 'record synthetic'.")

@@ -113,10 +113,12 @@ class _ServeUntilInterrupted:
     def on_finish(self, summary) -> None:
         import time
 
+        from lcv_replay.shutdown import stop_requested
+
         typer.echo(f"serving the recording at {self.rerun_sink.served_url} — press Ctrl-C to stop", err=True)
         try:
-            while True:
-                time.sleep(1.0)
+            while not stop_requested():
+                time.sleep(0.2)
         except KeyboardInterrupt:
             pass
 
@@ -172,7 +174,8 @@ def replay_command(
 
     from lcv_replay.config import load_config
     from lcv_replay.pacing import parse_rate
-    from lcv_replay.replay import ReplayOptions, StopToken, replay
+    from lcv_replay.replay import ReplayOptions, replay
+    from lcv_replay.shutdown import StopToken
 
     topic_flags = {
         "--left-topic": left_topic, "--right-topic": right_topic, "--no-images": no_images or None,
@@ -221,13 +224,13 @@ def replay_command(
                         export=export, report=report)
     try:
         summary = replay(options, sinks, stop=stop)
-    except KeyboardInterrupt:  # before the first frame (a follower waiting for the recorder)
+    except KeyboardInterrupt as exc:  # before the first frame (a follower waiting for the recorder)
         typer.echo("interrupted before the first frame: nothing to summarise", err=True)
-        raise typer.Exit(130) from None
+        raise typer.Exit(getattr(exc, "exit_code", 130)) from None
     finally:
         field.close()
     if summary.interrupted:
-        raise typer.Exit(130)
+        raise typer.Exit(stop.exit_code)
 
 
 @dataclass

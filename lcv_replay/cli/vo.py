@@ -63,13 +63,16 @@ def vo_command(
 
     from lcv_replay.fileio import write_text_atomic
     from lcv_replay.log.reader import open_log
+    from lcv_replay.shutdown import StopToken, stop_on_signals
     from lcv_replay.vo.log_vo import add_vo_odometry
 
     vo_config = load_vo_config(config)
     check_outputs(summary_json, force=force)
     with open_log(log) as reader:
         frames, ground_truth = reader.info.frames, reader.ground_truth()
-    with recording_progress("stereo VO", quiet=quiet) as progress:
+    stop = StopToken()
+    with stop_on_signals(stop, what="stopping after this frame and writing the log so far"), \
+            recording_progress("stereo VO", quiet=quiet) as progress:
         on_step = None if progress is None else (lambda step: progress(step.index + 1, frames))
         stats = add_vo_odometry(log, out, vo_config, force=force, replace_odometry=replace_odometry, on_step=on_step)
     if summary_json is not None:
@@ -84,3 +87,6 @@ def vo_command(
         for line in vo_summary_lines(stats.result, ground_truth):
             typer.echo(line)
         typer.echo(f"wrote {stats.path}" + (" (replaced the log's odometry)" if stats.replaced_odometry else ""))
+    if stats.interrupted:
+        typer.echo(f"INTERRUPTED: {stats.path} holds the first {len(stats.result.steps)} of {stats.frames_planned} frames", err=True)
+        raise typer.Exit(stop.exit_code)

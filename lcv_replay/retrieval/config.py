@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from lcv_replay.errors import require
+from lcv_replay.errors import require, require_seed
 
 
 @dataclass(frozen=True)
@@ -44,6 +44,7 @@ class RetrievalConfig:
 
     def __post_init__(self) -> None:
         require(self.top_k >= 1, "retrieval.top_k", self.top_k, "an integer >= 1")
+        require_seed(self.seed, "config key 'retrieval.seed'")
         require(self.exclusion_frames >= 0, "retrieval.exclusion_frames", self.exclusion_frames, "an integer >= 0")
         require(1 <= self.code_bits <= 64, "retrieval.code_bits", self.code_bits, "1..64")
         require(self.pca_dims >= self.code_bits, "retrieval.pca_dims", self.pca_dims, f"an integer >= code_bits ({self.code_bits})")

@@ -121,11 +121,11 @@ class SummarySink(BaseSink):
 
     def on_finish(self, summary: RunSummary) -> None:
         self.summary = summary
-        if self.json_path is not None:
-            write_text_atomic(self.json_path, summary_json(summary))
-        if self.stream is not None:
+        if self.stream is not None:  # first: a JSON that cannot be written (a full disk) loses no figure
             record = None if self.recorder is None else self.recorder.record
             print(format_summary(summary, record), file=self.stream, flush=True)
+        if self.json_path is not None:
+            write_text_atomic(self.json_path, summary_json(summary))
 
 
 def read_summary_json(path: str | Path) -> dict[str, Any]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
 
-from lcv_replay.errors import require
+from lcv_replay.errors import require, require_seed
 
 if TYPE_CHECKING:  # pragma: no cover
     import numpy as np
@@ -100,6 +100,7 @@ class VerificationConfig:
         require(self.iterations_per_window >= 1, "verification.iterations_per_window", self.iterations_per_window, "an integer >= 1")
         require(self.hypotheses_per_iteration >= 1, "verification.hypotheses_per_iteration", self.hypotheses_per_iteration, "an integer >= 1")
         require(self.max_hypotheses >= self.hypotheses_per_iteration, "verification.max_hypotheses", self.max_hypotheses, "an integer >= hypotheses_per_iteration")
+        require_seed(self.seed, "config key 'verification.seed'")
         require(self.top_k_trajectories >= 1, "verification.top_k_trajectories", self.top_k_trajectories, "an integer >= 1")
         require(self.max_iterations >= 1, "verification.max_iterations", self.max_iterations, "an integer >= 1")
         require(all(s > 0 for s in self.odometry_sigmas), "verification.odometry_sigmas", self.odometry_sigmas, "three numbers > 0 [m, m, rad]")
