@@ -46,7 +46,8 @@ def golden_descriptors() -> np.ndarray:
 
 
 def case_config(name: str) -> RetrievalConfig:
-    return RetrievalConfig(**{**BASE, **CASES[name]})
+    """The case's config in ``mode = "paper"`` (the golden was written before modes existed, at 4f6e6e7)."""
+    return RetrievalConfig(**{**BASE, **CASES[name]}, mode="paper")
 
 
 def run_case(config: RetrievalConfig, descriptors: np.ndarray) -> list[dict]:

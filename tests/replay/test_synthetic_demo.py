@@ -83,9 +83,9 @@ def test_image_route_logs_camera_and_retrieval(demo_cache, tmp_path):
         assert path in tables, path
     assert tables[bp.CAMERA_LEFT].column("frame").to_pylist() == list(range(0, FRAMES, 10))
     queries = [f for f in tables[bp.RETRIEVAL_CODE].column("frame").to_pylist() if f is not None]
-    assert min(queries) == 30  # warm-up: max(Δt, N_b + 1) = 30 frames, then every frame queries
+    assert min(queries) == 30  # warm-up: Δt = 30 frames, then every frame queries
     code = last_row(tables[bp.RETRIEVAL_CODE], "Image:buffer")[0]
-    assert len(code) == 20 and set(code) <= {0, 255}
+    assert len(code) == 24 and set(code) <= {0, 255}  # ranked codes: 30 warm-up frames span 29 PCA axes, 24 bits
     # The last query's table and distance series agree; L2 distances sorted (best first).
     row = [v for v in last_row(tables[bp.RETRIEVAL_DISTANCES], "Scalars:scalars") if v == v]  # drop NaN
     assert row == sorted(row) and 1 <= len(row) <= 5
