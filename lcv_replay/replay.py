@@ -519,7 +519,7 @@ def _prepare(options: ReplayOptions) -> _Setup:
         has_ground_truth=ground_truth is not None,
         truth_source=truth_source.value,
         ground_truth=ground_truth,
-        code_bits=config.retrieval.code_bits if retrieval is not None else None,
+        code_bits=config.retrieval.active_code_bits if retrieval is not None else None,
     )
     return _Setup(reader, config, source, first, verifier, retrieval, truth, start)
 

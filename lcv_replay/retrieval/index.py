@@ -41,6 +41,7 @@ approximate indexes (HNSW, multi-index hashing) were measured and not chosen (do
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 from dataclasses import dataclass
 from typing import Literal
@@ -259,8 +260,13 @@ class CodeIndex(_Library):
             top_k: ``N_r``; fewer come back when fewer pass the prefilter.
         """
         vector = np.asarray(vector, dtype=np.float32).reshape(-1)
+        rows, hamming = self.prefilter(code, max_frame_index=max_frame_index)
+        return self._result(rows, hamming, vector, top_k)
+
+    def prefilter(self, code: int, *, max_frame_index: int) -> tuple[np.ndarray, np.ndarray]:
+        """The first stage alone: ``(rows, Hamming distances)`` of the frames within ``T_b``."""
         rows = self._prefilter(int(code), self._eligible_rows(max_frame_index))
-        return self._result(rows, hamming_distances(self._codes[rows], int(code)), vector, top_k)
+        return rows, hamming_distances(self._codes[rows], int(code))
 
     def _prefilter(self, code: int, eligible: int) -> np.ndarray:
         if eligible == 0:
@@ -324,14 +330,17 @@ class RankedIndex(_Library):
             top_k: ``N_r``; fewer come back only when fewer frames are eligible.
         """
         vector = np.asarray(vector, dtype=np.float32).reshape(-1)
+        rows, hamming = self.prefilter(code, max_frame_index=max_frame_index)
+        return self._result(rows, hamming, vector, top_k)
+
+    def prefilter(self, code: int, *, max_frame_index: int) -> tuple[np.ndarray, np.ndarray]:
+        """The first stage alone: ``(rows, Hamming distances)`` of the ``M`` nearest eligible frames."""
         eligible = self._eligible_rows(max_frame_index)
         query = code_words(int(code), self._words)
         if self._faiss is not None and self._faiss.can_search(eligible):
             self._faiss.extend(self._codes, eligible)
-            rows, hamming = self._faiss.search(query, min(self.candidates, eligible))
-        else:
-            rows, hamming = hamming_nearest(self._codes[:eligible], query, self.candidates)
-        return self._result(rows, hamming, vector, top_k)
+            return self._faiss.search(query, min(self.candidates, eligible))
+        return hamming_nearest(self._codes[:eligible], query, self.candidates)
 
 
 def code_words(code: int, words: int) -> np.ndarray:
@@ -369,6 +378,7 @@ def faiss_available() -> bool:
     """Whether ``faiss`` (the faiss-cpu package) imports."""
     global _FAISS_AVAILABLE
     if _FAISS_AVAILABLE is None:
+        logging.getLogger("faiss.loader").setLevel(logging.WARNING)  # its INFO lines name CPU builds tried
         try:
             import faiss  # noqa: F401
 
