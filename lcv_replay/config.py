@@ -38,12 +38,6 @@ class ReplayConfig:
     vo: VoConfig = field(default_factory=VoConfig)  # stereo VO ('lcv-replay vo', record --vo); not used by the replay
 
 
-def require(condition: bool, key: str, value: Any, expected: str) -> None:
-    """Raise :class:`ConfigError` naming ``key`` unless ``condition`` holds (for ``__post_init__``)."""
-    if not condition:
-        raise ConfigError(f"config key '{key}' = {value!r} is out of range", fix=f"use {expected}")
-
-
 def from_dict(cls: type[T], data: dict[str, Any], *, where: str = "", path: Path | None = None) -> T:
     """Build the dataclass ``cls`` from a (TOML) dict, refusing unknown keys and wrong types."""
     if not isinstance(data, dict):

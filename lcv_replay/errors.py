@@ -11,6 +11,7 @@ Messages name the file or value, the problem, and the fix, e.g.::
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 
 class LcvError(Exception):
@@ -41,6 +42,16 @@ class LcvError(Exception):
 
 class ConfigError(LcvError):
     """A config file or option is invalid (unknown key, wrong type, out of range)."""
+
+
+def require(condition: bool, key: str, value: Any, expected: str) -> None:
+    """Raise :class:`ConfigError` naming config ``key`` unless ``condition`` holds.
+
+    The config sections call it in ``__post_init__``, e.g.
+    ``require(self.top_k >= 1, "retrieval.top_k", self.top_k, "an integer >= 1")``.
+    """
+    if not condition:
+        raise ConfigError(f"config key '{key}' = {value!r} is out of range", fix=f"use {expected}")
 
 
 class LogFormatError(LcvError):

@@ -12,11 +12,12 @@ Conventions (the same everywhere in lcv-replay):
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field
-from typing import Callable, NamedTuple
+from dataclasses import dataclass, field, replace
+from typing import Callable, Iterable, NamedTuple
 
 import numpy as np
+
+from lcv_replay import se2
 
 
 class Pose2D(NamedTuple):
@@ -28,21 +29,15 @@ class Pose2D(NamedTuple):
 
     def compose(self, other: "Pose2D") -> "Pose2D":
         """``self ∘ other``: ``T_a_b ∘ T_b_c = T_a_c``."""
-        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
-        return Pose2D(
-            self.x_m + c * other.x_m - s * other.y_m,
-            self.y_m + s * other.x_m + c * other.y_m,
-            wrap_angle(self.yaw_rad + other.yaw_rad),
-        )
+        return Pose2D(*se2.compose_pose(self, other))
 
     def inverse(self) -> "Pose2D":
         """``T_a_b⁻¹ = T_b_a``."""
-        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
-        return Pose2D(-c * self.x_m - s * self.y_m, s * self.x_m - c * self.y_m, -self.yaw_rad)
+        return Pose2D(*se2.inverse_pose(self))
 
     def between(self, other: "Pose2D") -> "Pose2D":
         """``self⁻¹ ∘ other``: with ``self = T_w_a`` and ``other = T_w_b`` this is ``T_a_b``."""
-        return self.inverse().compose(other)
+        return Pose2D(*se2.between_pose(self, other))
 
     def as_array(self) -> np.ndarray:
         """``(3,)`` float64 array ``[x_m, y_m, yaw_rad]``."""
@@ -50,11 +45,6 @@ class Pose2D(NamedTuple):
 
 
 IDENTITY_POSE = Pose2D(0.0, 0.0, 0.0)
-
-
-def wrap_angle(angle_rad: float) -> float:
-    """Wrap an angle to ``[-pi, pi)``."""
-    return (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
 
 
 @dataclass(frozen=True)
@@ -156,3 +146,49 @@ class Frame:
     right: ImageRef | None = None
     candidates: tuple[LoopCandidate, ...] = ()
     true_loops: tuple[tuple[int, int], ...] = ()
+
+
+@dataclass(frozen=True)
+class FrameWindow:
+    """The frames ``[first, last)`` of a log that a run replays, and the map to replay-local indices.
+
+    Inside a replay the first replayed frame is frame 0: log frame ``k`` is ``k - first``. Loop
+    candidates and labels that reach back before ``first`` are dropped. The reader computes the
+    window once (:meth:`~lcv_replay.log.reader.LogReader.window`); every rebase goes through here.
+    """
+
+    first: int
+    last: int
+
+    @property
+    def frames(self) -> int:
+        """Number of frames in the window."""
+        return max(self.last - self.first, 0)
+
+    def rows(self, per_frame: np.ndarray) -> np.ndarray:
+        """The window's rows of a per-frame array of the whole log (e.g. ``(N, 3)`` ground truth)."""
+        return per_frame[self.first : self.last]
+
+    def pairs(self, pairs: Iterable[tuple[int, int]]) -> tuple[tuple[int, int], ...]:
+        """``(query, match)`` pairs in replay-local indices, in order; those whose match precedes
+        the window are dropped."""
+        return tuple((q - self.first, m - self.first) for q, m in pairs if m >= self.first)
+
+    def candidates(self, candidates: Iterable[LoopCandidate]) -> tuple[LoopCandidate, ...]:
+        """Candidates in replay-local indices; those reaching back before the window are dropped."""
+        return tuple(
+            replace(c, query_frame=c.query_frame - self.first, match_frame=c.match_frame - self.first)
+            for c in candidates
+            if c.match_frame >= self.first and c.query_frame >= self.first
+        )
+
+    def frame(self, frame: Frame) -> Frame:
+        """``frame`` with its index, candidates and labels in replay-local indices."""
+        if self.first == 0:
+            return frame
+        return replace(
+            frame,
+            index=frame.index - self.first,
+            candidates=self.candidates(frame.candidates),
+            true_loops=self.pairs(frame.true_loops),
+        )

@@ -31,6 +31,7 @@ from typing import Any, Callable, Iterable, Literal, Protocol, Sequence
 import numpy as np
 
 from lcv_replay.errors import RecorderError
+from lcv_replay.se2 import wrap_angles
 from lcv_replay.records import LoopCandidate, Pose2D, StereoCalibration
 
 #: ``R_body_camera`` for a camera with x right, y down, z forward (KITTI, OpenCV).
@@ -91,49 +92,8 @@ def format_size(size_bytes: int) -> str:
 
 
 # ---------------------------------------------------------------------------------------------
-# Planar pose algebra over arrays
+# Planar poses (the algebra is lcv_replay.se2)
 # ---------------------------------------------------------------------------------------------
-
-
-def wrap_angles(angles_rad: np.ndarray) -> np.ndarray:
-    """Wrap angles to ``[-pi, pi)``, element-wise."""
-    return (np.asarray(angles_rad, dtype=np.float64) + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def compose_chain(steps: np.ndarray, start: Pose2D | Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
-    """Cumulative poses of a chain of relative steps.
-
-    Args:
-        steps: ``(M, 3)`` relative poses ``T_{k}_{k+1}`` as ``(x_m, y_m, yaw_rad)``.
-        start: the pose ``T_world_0`` of the first node.
-
-    Returns:
-        ``(M + 1, 3)`` poses ``T_world_k``; row 0 is ``start``. Yaw is wrapped to ``[-pi, pi)``.
-    """
-    steps = np.asarray(steps, dtype=np.float64).reshape(-1, 3)
-    x0, y0, yaw0 = (float(v) for v in start)
-    # Heading before each step; positions are the running sum of the rotated step translations.
-    heading = yaw0 + np.concatenate([[0.0], np.cumsum(steps[:, 2])])
-    cos_h, sin_h = np.cos(heading[:-1]), np.sin(heading[:-1])
-    dx = cos_h * steps[:, 0] - sin_h * steps[:, 1]
-    dy = sin_h * steps[:, 0] + cos_h * steps[:, 1]
-    poses = np.empty((len(steps) + 1, 3))
-    poses[:, 0] = x0 + np.concatenate([[0.0], np.cumsum(dx)])
-    poses[:, 1] = y0 + np.concatenate([[0.0], np.cumsum(dy)])
-    poses[:, 2] = wrap_angles(heading)
-    return poses
-
-
-def relative_steps(poses: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`compose_chain`: ``(N, 3)`` poses -> ``(N - 1, 3)`` steps ``T_{k}_{k+1}``."""
-    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-    d = poses[1:, :2] - poses[:-1, :2]
-    c, s = np.cos(poses[:-1, 2]), np.sin(poses[:-1, 2])
-    steps = np.empty((max(len(poses) - 1, 0), 3))
-    steps[:, 0] = c * d[:, 0] + s * d[:, 1]
-    steps[:, 1] = -s * d[:, 0] + c * d[:, 1]
-    steps[:, 2] = wrap_angles(poses[1:, 2] - poses[:-1, 2])
-    return steps
 
 
 def poses_to_records(poses: np.ndarray) -> list[Pose2D]:

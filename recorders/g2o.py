@@ -38,25 +38,24 @@ from typing import Iterable, Literal
 
 import numpy as np
 
+from lcv_replay import se2
 from lcv_replay.errors import RecorderError
 from lcv_replay.records import LoopCandidate, Pose2D
+from lcv_replay.se2 import Information6
 from recorders.common import (
     LogHeader,
     ProgressCallback,
     RecordStats,
     is_number,
-    compose_chain,
     make_frames,
     options_config,
     read_numeric_rows,
-    relative_steps,
     require_path,
     write_log,
 )
 
 log = logging.getLogger(__name__)
 
-Information6 = tuple[float, float, float, float, float, float]
 OutlierMode = Literal["random", "local", "group"]
 
 #: Vertigo's default information matrix for false loops when the graph has no real loop to copy.
@@ -126,7 +125,7 @@ class PoseGraph2D:
     def odometry_poses(self) -> np.ndarray:
         """``(N, 3)`` cumulative odometry: the chain composed from vertex 0 (or the origin)."""
         start = tuple(self.vertices[0]) if self.vertices is not None else (0.0, 0.0, 0.0)
-        return compose_chain(self.odometry_steps, start)
+        return se2.compose_chain(self.odometry_steps, start)
 
     def trajectory(self) -> np.ndarray:
         """``(N, 3)`` absolute poses: the vertices if the file has them, else the composed chain.
@@ -144,40 +143,19 @@ class PoseGraph2D:
         """``(3, 3)`` information of the first chain edge (identity if the graph has no edges)."""
         if len(self.odometry_information) == 0:
             return np.eye(3)
-        return information_matrix(tuple(self.odometry_information[0]))
+        return se2.information_matrix(tuple(self.odometry_information[0]))
 
 
 # ---------------------------------------------------------------------------------------------
-# SE(2) measurement helpers
+# Edges (the SE(2) algebra is lcv_replay.se2)
 # ---------------------------------------------------------------------------------------------
-
-
-def information_matrix(upper: Iterable[float]) -> np.ndarray:
-    """Upper triangle ``(I11, I12, I13, I22, I23, I33)`` -> symmetric ``(3, 3)`` matrix."""
-    a, b, c, d, e, f = (float(v) for v in upper)
-    return np.array([[a, b, c], [b, d, e], [c, e, f]])
-
-
-def upper_triangle(matrix: np.ndarray) -> Information6:
-    """Symmetric ``(3, 3)`` matrix -> upper triangle in g2o order."""
-    m = 0.5 * (np.asarray(matrix, dtype=np.float64) + np.asarray(matrix, dtype=np.float64).T)
-    return (float(m[0, 0]), float(m[0, 1]), float(m[0, 2]), float(m[1, 1]), float(m[1, 2]), float(m[2, 2]))
-
-
-def se2_adjoint(pose: Pose2D) -> np.ndarray:
-    """``(3, 3)`` adjoint of an SE(2) pose for tangent vectors ordered ``(x, y, θ)``."""
-    c, s = math.cos(pose.yaw_rad), math.sin(pose.yaw_rad)
-    return np.array([[c, -s, pose.y_m], [s, c, -pose.x_m], [0.0, 0.0, 1.0]])
 
 
 def invert_measurement(T_a_b: Pose2D, information: Information6) -> tuple[Pose2D, Information6]:
-    """Turn a measurement ``T_a_b`` with information ``Λ`` into ``T_b_a`` with ``Ad⁻ᵀ Λ Ad⁻¹``.
-
-    With the error ``ξ = Log(T̂⁻¹ T)`` of the measurement, the reversed edge has error
-    ``ξ' = -Ad(T_a_b) ξ``, so its information is ``Ad(T_a_b)⁻ᵀ Λ Ad(T_a_b)⁻¹``.
-    """
-    ad_inv = np.linalg.inv(se2_adjoint(T_a_b))
-    return T_a_b.inverse(), upper_triangle(ad_inv.T @ information_matrix(information) @ ad_inv)
+    """An edge's measurement ``T_a_b`` and upper-triangle information as ``T_b_a`` and its
+    information (:func:`lcv_replay.se2.invert_measurement`)."""
+    T_b_a, inverted = se2.invert_measurement(T_a_b, se2.information_matrix(information))
+    return Pose2D(*T_b_a.tolist()), se2.upper_triangle(inverted)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -203,7 +181,7 @@ def _covariance_information(values: np.ndarray, path: Path, lines: list[int]) ->
         line = lines[int(np.argmax(singular))]
         raise RecorderError(f"line {line}: singular covariance matrix", path=path, fix="repair the edge's covariance")
     info = np.linalg.inv(cov)
-    return [upper_triangle(m) for m in info]
+    return [se2.upper_triangle(m) for m in info]
 
 
 def _parse_tagged(path: Path, lines: list[str]) -> tuple[dict[int, tuple[float, float, float]], list[G2oEdge]]:
@@ -334,7 +312,7 @@ def _build_graph(path: Path, vertices: dict[int, tuple[float, float, float]], ed
         else:
             loops.append(edge)
     if not edges and vertex_array is not None:
-        steps = relative_steps(vertex_array)
+        steps = se2.relative_steps(vertex_array)
         step_info[:] = (1.0, 0.0, 0.0, 1.0, 0.0, 1.0)
     elif np.isnan(steps[:, 0]).any():
         k = int(np.argmax(np.isnan(steps[:, 0])))

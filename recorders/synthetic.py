@@ -25,11 +25,11 @@ from typing import Literal
 
 import numpy as np
 
-from lcv_replay.config import require
-from lcv_replay.errors import ConfigError
+from lcv_replay.errors import ConfigError, require
 from lcv_replay.fileio import check_output_path
 from lcv_replay.records import Pose2D
-from recorders.common import ProgressCallback, RecordStats, compose_chain, relative_steps
+from lcv_replay.se2 import compose_chain, relative_steps
+from recorders.common import ProgressCallback, RecordStats
 from recorders.synthetic_textures import render_facade
 from recorders.synthetic_world import RouteConfig, SyntheticWorld, WorldConfig, make_route, t_body_camera
 

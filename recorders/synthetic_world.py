@@ -45,8 +45,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from lcv_replay.config import require
-from lcv_replay.errors import ConfigError
+from lcv_replay.errors import ConfigError, require
 from lcv_replay.records import Pose2D, StereoCalibration
 from recorders.synthetic_textures import (
     SKY_MAX_ELEVATION_RAD,

@@ -18,9 +18,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from lcv_replay.errors import LogFormatError, VerificationError
+from lcv_replay.errors import LogFormatError
 from lcv_replay.evaluation.metrics import Metrics, evaluate
-from lcv_replay.evaluation.truth import LoopTruth, loop_truth
+from lcv_replay.evaluation.truth import ConstraintTruth, LoopTruth, choose_truth_source, loop_truth, provide_truth
 from lcv_replay.records import LoopCandidate, Pose2D
 from lcv_replay.verification.base import VerificationResult, VerifierStep
 from lcv_replay.verification.config import VerificationConfig
@@ -62,6 +62,11 @@ class LogInputs:
     def truth_of(self, pairs: Sequence[tuple[int, int]], radius_m: float) -> LoopTruth:
         """Truth of ``pairs``: labels, else ground truth closer than ``radius_m``, else unknown."""
         return loop_truth(pairs, true_pairs=self.true_pairs, ground_truth=self.ground_truth, radius_m=radius_m)
+
+    def constraint_truth(self, radius_m: float) -> ConstraintTruth:
+        """The same rule as :meth:`truth_of`, as the judge a replay of the log's candidates uses."""
+        source = choose_truth_source("log", has_labels=self.true_pairs is not None, has_ground_truth=self.ground_truth is not None)
+        return ConstraintTruth(source, self.true_pairs, self.ground_truth, radius_m)
 
 
 def load_inputs(reader_or_path: Any, *, require_candidates: bool = True) -> LogInputs:
@@ -108,6 +113,8 @@ class VerifyRow:
     ``cpu_time_s`` is the process CPU time of the run (steadier than wall time on a shared machine,
     but it also counts GTSAM's worker threads, if any). ``gate_chi2`` is the chi-square gate in
     force at the end (``ilv+`` calibrates it to the data; ``None`` for methods without one).
+    ``ambiguous`` counts the constraints flagged ambiguous at the end (neither accepted nor
+    rejected, ``ilv+``), ``ambiguous_true`` how many of them are true (``None`` without truth).
     """
 
     log: str
@@ -140,6 +147,8 @@ class VerifyRow:
     window_time_max_s: float | None
     gate_chi2: float | None
     seed: int
+    ambiguous: int = 0
+    ambiguous_true: int | None = None
     case: str | None = None
     config: dict[str, Any] = field(default_factory=dict)
 
@@ -214,22 +223,13 @@ def verify_inputs(
             singular information matrix, ...
     """
     from lcv_replay.config import to_dict
-    from lcv_replay.verification.baselines import needs_truth
     from lcv_replay.verification.registry import make_verifier
 
     config = config or VerificationConfig()
     if seed is not None:
         config = dataclasses.replace(config, seed=seed)
     verifier = make_verifier(method, config, odometry_information=inputs.odometry_information)
-    if needs_truth(verifier):
-        candidate_truth = inputs.truth_of([c.pair for c in inputs.candidates], config.consistency_radius_m)
-        if not candidate_truth.known:
-            raise VerificationError(
-                f"method '{method}' needs the log's true loops, but the log has neither labels nor ground truth",
-                path=inputs.path,
-                fix="record the log with --true-loops or --ground-truth, or choose another method",
-            )
-        verifier.set_true_pairs(inputs.candidates[i].pair for i in candidate_truth.true_ids)
+    provide_truth(verifier, inputs.constraint_truth(config.consistency_radius_m), method=method, path=inputs.path)
 
     started, started_cpu = time.perf_counter(), time.process_time()
     result, steps, window_times = feed(verifier, inputs, on_step=on_step)
@@ -270,6 +270,8 @@ def verify_inputs(
         window_time_max_s=float(np.max(window_times)) if window_times else None,
         gate_chi2=result.last_step.gate_chi2 if result.last_step else None,
         seed=config.seed,
+        ambiguous=len(result.ambiguous_constraint_ids),
+        ambiguous_true=len(truth.true_ids & set(result.ambiguous_constraint_ids)) if truth.known else None,
         case=case,
         config=to_dict(config),
     )

@@ -115,7 +115,8 @@ def replay_command(
     import dataclasses
 
     from lcv_replay.config import load_config
-    from lcv_replay.replay import ReplayOptions, parse_rate, replay
+    from lcv_replay.pacing import parse_rate
+    from lcv_replay.replay import ReplayOptions, replay
 
     replay_config = load_config(config)
     if image_every is not None:

@@ -13,6 +13,7 @@ from typing import Collection, Mapping, Sequence
 
 import numpy as np
 
+from lcv_replay import se2
 from lcv_replay.errors import VerificationError
 from lcv_replay.evaluation.truth import LoopTruth, TruthSource
 from lcv_replay.records import Pose2D
@@ -128,17 +129,8 @@ def align_se2(estimate_xy: np.ndarray, reference_xy: np.ndarray) -> Pose2D:
     ec, rc = e - e_mean, r - r_mean
     # θ maximises Σ r_c · R e_c = cosθ Σ(ex rx + ey ry) + sinθ Σ(ex ry − ey rx).
     theta = math.atan2(float(np.sum(ec[:, 0] * rc[:, 1] - ec[:, 1] * rc[:, 0])), float(np.sum(ec * rc)))
-    c, s = math.cos(theta), math.sin(theta)
-    rotated_mean = np.array([c * e_mean[0] - s * e_mean[1], s * e_mean[0] + c * e_mean[1]])
-    t = r_mean - rotated_mean
+    t = r_mean - se2.transform_points((0.0, 0.0, theta), e_mean[None, :])[0]
     return Pose2D(float(t[0]), float(t[1]), theta)
-
-
-def transform_xy(T: Pose2D, xy: np.ndarray) -> np.ndarray:
-    """Apply ``T`` to ``(N, 2)`` positions."""
-    c, s = math.cos(T.yaw_rad), math.sin(T.yaw_rad)
-    xy = np.asarray(xy, dtype=np.float64)[:, :2]
-    return np.column_stack([c * xy[:, 0] - s * xy[:, 1] + T.x_m, s * xy[:, 0] + c * xy[:, 1] + T.y_m])
 
 
 def absolute_trajectory_error(estimate: np.ndarray, reference: np.ndarray) -> AteResult:
@@ -165,7 +157,7 @@ def absolute_trajectory_error(estimate: np.ndarray, reference: np.ndarray) -> At
         raise VerificationError("the ground truth has no finite pose to compare with", fix="check the log's ground truth")
     e, r = e[known], r[known]
     T = align_se2(e, r)
-    aligned = transform_xy(T, e)
+    aligned = se2.transform_points(T, e)
     rmse = float(np.sqrt(np.mean(np.sum((aligned - r) ** 2, axis=1))))
     unaligned = float(np.sqrt(np.mean(np.sum((e - r) ** 2, axis=1))))
     return AteResult(rmse, unaligned, T, len(e))
@@ -241,6 +233,23 @@ class WindowMetrics:
     constraints: int
     detection: DetectionMetrics
     ate_rmse_m: float | None
+
+
+def ate_rmse_m(trajectory: np.ndarray | None, ground_truth: np.ndarray | None) -> float | None:
+    """SE(2)-aligned ATE RMSE over the frames that have ground truth; ``None`` without a trajectory,
+    without ground truth, or with fewer than two frames that have both.
+
+    Args:
+        trajectory: ``(M, 3)`` estimate of frames ``0..M-1``.
+        ground_truth: ``(N >= M, 3)`` ground truth, NaN rows where a frame has none.
+    """
+    if trajectory is None or ground_truth is None or len(trajectory) == 0:
+        return None
+    reference = ground_truth[: len(trajectory)]
+    mask = np.all(np.isfinite(reference[:, :2]), axis=1)
+    if mask.sum() < 2:
+        return None
+    return absolute_trajectory_error(np.asarray(trajectory)[mask], reference[mask]).rmse_m
 
 
 def top_trajectory(step: VerifierStep) -> np.ndarray | None:

@@ -1,6 +1,6 @@
 """Truth of loop-closure constraints: from labels, else from ground-truth poses, else unknown.
 
-The rule (issue 3, "Evaluation"):
+The rule of :func:`loop_truth`:
 
 1. if the log carries true-loop labels (``/ground_truth/loops``), a constraint is true exactly when
    its ``(query_frame, match_frame)`` pair is labelled;
@@ -9,18 +9,25 @@ The rule (issue 3, "Evaluation"):
    has no ground-truth pose, a NaN row);
 3. otherwise its truth is unknown, and every metric that needs it is ``None``.
 
-Pure functions over pairs and arrays; nothing here reads a file.
+A replay judges its constraints as they arrive (:class:`ConstraintTruth`), with the source that
+:func:`choose_truth_source` picks for where the constraints come from. Pure functions over pairs
+and arrays; nothing here reads a file.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from enum import Enum
-from typing import Iterable, Sequence
+from typing import TYPE_CHECKING, Iterable, Sequence
 
 import numpy as np
 
 from lcv_replay.errors import VerificationError
+from lcv_replay.verification.base import needs_truth
+
+if TYPE_CHECKING:  # pragma: no cover
+    from lcv_replay.verification.base import Constraint
 
 
 class TruthSource(str, Enum):
@@ -129,3 +136,85 @@ def loop_truth(
             radius_m,
         )
     return LoopTruth(TruthSource.NONE, (None,) * len(pairs))
+
+
+def choose_truth_source(constraint_source: str, *, has_labels: bool, has_ground_truth: bool) -> TruthSource:
+    """Labels judge the log's own candidates; retrieval's constraints are judged by ground truth.
+
+    Labels (``/ground_truth/loops``) list the true pairs among the *recorded* candidates, so they
+    judge ``--constraints log``; constraints from our retrieval (``images``/``both``) are judged by
+    the ground-truth distance (< T_p) where ground truth exists, else by the labels.
+    """
+    if constraint_source == "log" and has_labels:
+        return TruthSource.LABELS
+    if has_ground_truth:
+        return TruthSource.GROUND_TRUTH
+    if has_labels:
+        return TruthSource.LABELS
+    return TruthSource.NONE
+
+
+class ConstraintTruth:
+    """Truth of a constraint history, grown as the constraints arrive.
+
+    Args:
+        source: how constraints are judged (see :func:`choose_truth_source`).
+        true_pairs: the labelled true pairs (used with ``LABELS``).
+        ground_truth: ``(N, 3)`` ground-truth poses, NaN rows where a frame has none (used with
+            ``GROUND_TRUTH``); a pair touching a NaN row is unknown.
+        radius_m: T_p, the ground-truth distance below which a pair is true.
+    """
+
+    def __init__(self, source: TruthSource, true_pairs: Iterable[tuple[int, int]] | None, ground_truth: np.ndarray | None, radius_m: float):
+        self.source = source
+        self._pairs = None if true_pairs is None else set(true_pairs)
+        self._gt = ground_truth
+        self._radius_m = radius_m
+        self.flags: list[bool | None] = []
+
+    def judge(self, pairs: Sequence[tuple[int, int]]) -> tuple[bool | None, ...]:
+        """Truth of ``(query_frame, match_frame)`` pairs, ``None`` where unknown (no state change)."""
+        if not pairs:
+            return ()
+        if self.source is TruthSource.LABELS:
+            return loop_truth(pairs, true_pairs=self._pairs).is_true
+        if self.source is TruthSource.GROUND_TRUTH:
+            index = np.asarray(pairs, dtype=np.int64)
+            finite = np.all(np.isfinite(self._gt[index.reshape(-1), :2]).reshape(-1, 4), axis=1)
+            judged = loop_truth(pairs, ground_truth=np.nan_to_num(self._gt), radius_m=self._radius_m).is_true
+            return tuple(t if ok else None for t, ok in zip(judged, finite))
+        return (None,) * len(pairs)
+
+    def is_true(self, query_frame: int, match_frame: int) -> bool:
+        """Whether one pair is known to be true."""
+        return self.judge([(query_frame, match_frame)])[0] is True
+
+    def add(self, constraints: Sequence["Constraint"]) -> tuple[bool | None, ...]:
+        """Judge the constraints that just arrived (in id order) and keep their flags."""
+        new = self.judge([(c.query_frame, c.match_frame) for c in constraints])
+        self.flags.extend(new)
+        return new
+
+    def as_loop_truth(self, count: int | None = None) -> LoopTruth:
+        """The flags so far (or of the first ``count`` constraints) as a :class:`LoopTruth`."""
+        flags = tuple(self.flags if count is None else self.flags[:count])
+        return LoopTruth(self.source, flags, self._radius_m if self.source is TruthSource.GROUND_TRUTH else None)
+
+
+def provide_truth(verifier: object, truth: ConstraintTruth, *, method: str, path: Path | None = None) -> None:
+    """Give a verifier that needs the truth (:class:`~lcv_replay.verification.base.NeedsTruth`,
+    the oracle) the truth that judges the run; nothing for any other verifier.
+
+    Raises:
+        VerificationError: the verifier needs the truth but the run has none (no labels, no
+            ground truth); raised before the first frame.
+    """
+    if not needs_truth(verifier):
+        return
+    if truth.source is TruthSource.NONE:
+        raise VerificationError(
+            f"method '{method}' needs the log's true loops, but the log has neither labels nor ground truth",
+            path=path,
+            fix="record the log with --true-loops or --ground-truth, or choose another method",
+        )
+    verifier.set_truth(truth.is_true)  # type: ignore[attr-defined]

@@ -27,7 +27,7 @@ from lcv_replay.errors import ConfigError, LogFormatError
 from lcv_replay.log import format as fmt
 from lcv_replay.log import images, messages
 from lcv_replay.log.container import ENTRY_DTYPE, Container, load_container
-from lcv_replay.records import Frame, ImageRef, LoopCandidate, Pose2D, StereoCalibration
+from lcv_replay.records import Frame, FrameWindow, ImageRef, LoopCandidate, Pose2D, StereoCalibration
 
 log = logging.getLogger(__name__)
 
@@ -185,15 +185,38 @@ class LogReader:
             return None
         return messages.calibration_from_messages(left, self._first_message(fmt.RIGHT_CALIBRATION_TOPIC))
 
-    def frames(self, *, start_offset_s: float = 0.0, duration_s: float | None = None) -> Iterator[Frame]:
-        """Frames in time order, optionally within ``[start + start_offset_s, + duration_s)``.
+    def window(self, start_offset_s: float = 0.0, duration_s: float | None = None) -> FrameWindow:
+        """The frames stamped in ``[stamp_0 + start_offset_s, + duration_s)`` (``None``: to the end).
+
+        Raises:
+            ConfigError: a negative offset or a duration that is not > 0.
+        """
+        if not (math.isfinite(start_offset_s) and start_offset_s >= 0):
+            raise ConfigError(f"start offset {start_offset_s} s must be >= 0", fix="pass a non-negative --start-offset")
+        if duration_s is not None and not (duration_s > 0):
+            raise ConfigError(f"duration {duration_s} s must be > 0", fix="pass a positive --duration")
+        stamps = self._tables.stamps_ns
+        if len(stamps) == 0:
+            return FrameWindow(0, 0)
+        t0 = int(stamps[0]) + round(start_offset_s * 1e9)
+        first = int(np.searchsorted(stamps, t0, "left"))
+        if duration_s is None or not math.isfinite(duration_s):
+            return FrameWindow(first, len(stamps))
+        return FrameWindow(first, int(np.searchsorted(stamps, t0 + round(duration_s * 1e9), "left")))
+
+    def frames(
+        self, *, start_offset_s: float = 0.0, duration_s: float | None = None, window: FrameWindow | None = None
+    ) -> Iterator[Frame]:
+        """Frames in time order, optionally within ``[start + start_offset_s, + duration_s)``, or
+        within a ``window`` from :meth:`window`. Frames keep their log indices.
 
         Only the chunks holding messages of the window are decompressed. Images are
         :class:`ImageRef` (decoded on ``.decode()``). ``Frame.candidates``/``true_loops`` hold the
         log's candidates/labels whose ``query_frame`` is the frame's index.
         """
-        first, last = self._window(start_offset_s, duration_s)  # raises here, not at the first next()
-        return self._iter_frames(first, last)
+        if window is None:
+            window = self.window(start_offset_s, duration_s)  # raises here, not at the first next()
+        return self._iter_frames(window.first, window.last)
 
     def _iter_frames(self, first: int, last: int) -> Iterator[Frame]:
         t = self._tables
@@ -603,18 +626,6 @@ class LogReader:
                 )
             items.append(item)
         return items
-
-    def _window(self, start_offset_s: float, duration_s: float | None) -> tuple[int, int]:
-        if not (math.isfinite(start_offset_s) and start_offset_s >= 0):
-            raise ConfigError(f"start offset {start_offset_s} s must be >= 0", fix="pass a non-negative --start-offset")
-        if duration_s is not None and not (duration_s > 0):
-            raise ConfigError(f"duration {duration_s} s must be > 0", fix="pass a positive --duration")
-        stamps = self._tables.stamps_ns
-        t0 = int(stamps[0]) + round(start_offset_s * 1e9)
-        first = int(np.searchsorted(stamps, t0, "left"))
-        if duration_s is None or not math.isfinite(duration_s):
-            return first, len(stamps)
-        return first, int(np.searchsorted(stamps, t0 + round(duration_s * 1e9), "left"))
 
 
 def _match(

@@ -14,6 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from lcv_replay.errors import require
+
 MODES = ("ranked", "paper")
 ENGINES = ("auto", "onnxruntime", "torch")
 
@@ -32,8 +34,6 @@ class RankedConfig:
     index: Literal["auto", "faiss", "numpy"] = "auto"  # exact Hamming k-NN: faiss IndexBinaryFlat, or a numpy scan; auto = faiss when installed
 
     def __post_init__(self) -> None:
-        from lcv_replay.config import require
-
         require(8 <= self.code_bits <= 128 and self.code_bits % 8 == 0, "retrieval.ranked.code_bits", self.code_bits, "a multiple of 8 in 8..128")
         require(self.candidates >= 1, "retrieval.ranked.candidates", self.candidates, "an integer >= retrieval.top_k")
         require(self.index in ("auto", "faiss", "numpy"), "retrieval.ranked.index", self.index, "'auto', 'faiss' or 'numpy'")
@@ -77,8 +77,6 @@ class RetrievalConfig:
     ranked: RankedConfig = field(default_factory=RankedConfig)  # mode "ranked" only
 
     def __post_init__(self) -> None:
-        from lcv_replay.config import require
-
         require(self.mode in MODES, "retrieval.mode", self.mode, "'ranked' (the default) or 'paper'")
         require(self.engine in ENGINES, "retrieval.engine", self.engine, "'auto', 'onnxruntime' or 'torch'")
         require(self.top_k >= 1, "retrieval.top_k", self.top_k, "an integer >= 1")

@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from lcv_replay.errors import require
+
 
 @dataclass(frozen=True)
 class RerunConfig:
@@ -16,8 +18,6 @@ class RerunConfig:
     memory_limit: str = "25%"  # viewer memory limit for --spawn/--serve
 
     def __post_init__(self) -> None:
-        from lcv_replay.config import require
-
         require(self.image_every >= 0, "rerun.image_every", self.image_every, "an integer >= 0")
         require(self.top_hypotheses >= 1, "rerun.top_hypotheses", self.top_hypotheses, "an integer >= 1")
 

@@ -6,14 +6,14 @@ directly. Poses are ``(N, 3)`` float64 ``[x_m, y_m, yaw_rad]``; positions ``(N, 
 
 from __future__ import annotations
 
-import math
 from enum import IntEnum
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from lcv_replay import se2
 from lcv_replay.verification.base import Constraint, HypothesisSummary
-from lcv_replay.verification.pose_graph import extend_by_odometry, se2_between, se2_compose
+from lcv_replay.verification.measurements import extend_by_odometry
 
 
 class ConstraintState(IntEnum):
@@ -94,12 +94,8 @@ def anchor_to_first(reference: np.ndarray, first_pose: np.ndarray) -> np.ndarray
     reference = np.asarray(reference, dtype=np.float64)
     if len(reference) == 0:
         return reference.copy()
-    T = se2_compose(np.asarray(first_pose, dtype=np.float64), _inverse(reference[0]))
-    return se2_compose(T, reference)
-
-
-def _inverse(pose: np.ndarray) -> np.ndarray:
-    return se2_between(pose, np.zeros(3))
+    T = se2.compose(np.asarray(first_pose, dtype=np.float64), se2.inverse(reference[0]))
+    return se2.compose(T, reference)
 
 
 class GrowingRows:
@@ -172,20 +168,15 @@ class MapEstimate:
         return extend_by_odometry(self._best, self.odometry)
 
     def position_of(self, frame: int) -> tuple[float, float]:
-        """Best position of one frame (``< N``); plain float maths, for the per-frame hot path."""
+        """Best position of one frame (``< N``); one-pose maths, for the per-frame hot path."""
         odom = self.odometry
         m = len(self._best)
         if m == 0:
             return float(odom[frame, 0]), float(odom[frame, 1])
         if frame < m:
             return float(self._best[frame, 0]), float(self._best[frame, 1])
-        a, b, c = self._best[m - 1], odom[m - 1], odom[frame]
-        # delta = b⁻¹ ∘ c in b's frame, then a ∘ delta.
-        cb, sb = math.cos(b[2]), math.sin(b[2])
-        dx, dy = c[0] - b[0], c[1] - b[1]
-        lx, ly = cb * dx + sb * dy, -sb * dx + cb * dy
-        ca, sa = math.cos(a[2]), math.sin(a[2])
-        return float(a[0] + ca * lx - sa * ly), float(a[1] + sa * lx + ca * ly)
+        x_m, y_m, _ = se2.compose_pose(self._best[m - 1], se2.between_pose(odom[m - 1], odom[frame]))
+        return float(x_m), float(y_m)
 
     def positions_of(self, frames: np.ndarray) -> np.ndarray:
         """``(K, 2)`` best positions of the given frame indices (each ``< N``)."""
@@ -198,7 +189,7 @@ class MapEstimate:
         inside = frames < m
         out[inside] = self._best[frames[inside], :2]
         if np.any(~inside):
-            later = se2_compose(self._best[m - 1], se2_between(odom[m - 1], odom[frames[~inside]]))
+            later = se2.compose(self._best[m - 1], se2.between(odom[m - 1], odom[frames[~inside]]))
             out[~inside] = later[:, :2]
         return out
 

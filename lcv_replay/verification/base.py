@@ -14,12 +14,20 @@ A verifier never sees the future: constraints only reference frames already adde
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
-from typing import Protocol, Sequence
+from typing import TYPE_CHECKING, Callable, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
+from lcv_replay.errors import VerificationError
 from lcv_replay.records import LoopCandidate, Pose2D
+from lcv_replay.verification.measurements import as_information_matrix, loop_measurement
+
+if TYPE_CHECKING:  # pragma: no cover
+    from lcv_replay.verification.config import VerificationConfig
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -84,6 +92,10 @@ class VerifierStep:
         dropped: ``(hypothesis_id, reason)`` for hypotheses dropped (optimiser failure, pruning).
         gate_chi2: the chi-square gate in force in this step, in the declared noise units
             (``ilv+`` calibrates it to the data); ``None`` for methods without one.
+        ambiguous_constraint_ids: constraints the verifier can neither accept nor reject yet:
+            mutually consistent loops that compete with other loops and explain the data about as
+            well (``ilv+``). They are flagged, never accepted (disjoint from
+            ``accepted_constraint_ids``); empty for methods without such a verdict.
     """
 
     frame_index: int
@@ -98,6 +110,7 @@ class VerifierStep:
     timings_s: dict[str, float] = field(default_factory=dict)
     dropped: tuple[tuple[int, str], ...] = ()
     gate_chi2: float | None = None
+    ambiguous_constraint_ids: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -113,6 +126,8 @@ class VerificationResult:
         paper_consistent_ids: constraints consistent with the top hypothesis under the paper's
             T_p test (sec. II-A), for the paper's own precision/recall.
         last_step: the last step (for sinks), if any.
+        ambiguous_constraint_ids: constraints flagged ambiguous at the end (never accepted; see
+            :attr:`VerifierStep.ambiguous_constraint_ids`).
     """
 
     method: str
@@ -122,6 +137,27 @@ class VerificationResult:
     ranking: tuple[HypothesisSummary, ...] = ()
     paper_consistent_ids: tuple[int, ...] = ()
     last_step: VerifierStep | None = None
+    ambiguous_constraint_ids: tuple[int, ...] = ()
+
+
+def result_step(result: VerificationResult, last: VerifierStep | None) -> VerifierStep:
+    """A final :class:`VerifierStep` that carries ``result`` (for a verifier whose last step does
+    not: a batch method that solves in ``result()``, or a last partial window)."""
+    frame_index = len(result.trajectory) - 1
+    window = (last.window_index + 1) if last is not None else 0
+    top_id = result.ranking[0].id if result.ranking else -1
+    return VerifierStep(
+        frame_index=frame_index,
+        window_index=window,
+        new_constraint_ids=(),
+        new_hypotheses=(),
+        generation_edges=(),
+        ranking=tuple(result.ranking),
+        accepted_constraint_ids=tuple(result.accepted_constraint_ids),
+        trajectories={top_id: np.asarray(result.trajectory)},
+        consistency=last.consistency if last is not None else np.zeros((0, 0), dtype=bool),
+        timings_s={},
+    )
 
 
 class Verifier(Protocol):
@@ -141,3 +177,120 @@ class Verifier(Protocol):
 
     def result(self) -> VerificationResult:
         """Finish (process the last partial window) and return the final result."""
+
+
+#: Whether the loop ``(query_frame, match_frame)`` is known to be true.
+PairTruth = Callable[[int, int], bool]
+
+
+@runtime_checkable
+class NeedsTruth(Protocol):
+    """A verifier capability: it must be told which loops are true before its first frame.
+
+    The ``oracle`` (only the true loops: the ATE reference) has it. The replay and ``bench verify``
+    give it the truth that judges the run (:func:`lcv_replay.evaluation.truth.provide_truth`), and
+    refuse the method up front where the log has neither labels nor ground truth.
+    """
+
+    def set_truth(self, is_true: PairTruth) -> None:
+        """Which ``(query_frame, match_frame)`` pairs are true (frame indices as fed to the verifier)."""
+
+
+def needs_truth(verifier: object) -> bool:
+    """Whether ``verifier`` has the :class:`NeedsTruth` capability."""
+    return isinstance(verifier, NeedsTruth)
+
+
+# ----------------------------------------------------------------------------------------------
+# Shared by every verifier: the constraint history, frame checks, default noise
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class AdmissionStats:
+    """Counts of candidates not admitted as new constraints."""
+
+    unknown_frames: int = 0
+    self_loops: int = 0
+    duplicates: int = 0
+
+
+class ConstraintHistory:
+    """The growing constraint history: ids in arrival order, duplicates and self-loops merged.
+
+    A candidate is rejected (counted, with a warning) when it references a frame not yet added or
+    is not oriented ``query_frame > match_frame``; a self-loop (``query == match``) or a pair
+    already in the history is merged (dropped, counted). Its information matrix is validated on
+    arrival, so a singular one is reported naming the constraint.
+    """
+
+    def __init__(self, loop_default_information: np.ndarray):
+        self.loop_default_information = loop_default_information
+        self.constraints: list[Constraint] = []
+        self.stats = AdmissionStats()
+        self._pairs: set[tuple[int, int]] = set()
+
+    def __len__(self) -> int:
+        return len(self.constraints)
+
+    def admit(self, candidates: Sequence[LoopCandidate], num_frames: int) -> list[Constraint]:
+        """Admit ``candidates`` given frames ``0..num_frames-1``; returns the new constraints."""
+        new: list[Constraint] = []
+        unknown = []
+        arrival = num_frames - 1
+        for cand in candidates:
+            q, m = cand.query_frame, cand.match_frame
+            if q == m:
+                self.stats.self_loops += 1
+                continue
+            if not (0 <= m < q < num_frames):
+                unknown.append((q, m))
+                continue
+            if cand.pair in self._pairs:
+                self.stats.duplicates += 1
+                continue
+            constraint = Constraint(len(self.constraints), cand, arrival)
+            loop_measurement(constraint, self.loop_default_information)  # validates Ω
+            self._pairs.add(cand.pair)
+            self.constraints.append(constraint)
+            new.append(constraint)
+        if unknown:
+            self.stats.unknown_frames += len(unknown)
+            log.warning(
+                "rejected %d loop candidate(s) referencing frames outside 0..%d or not oriented "
+                "query > match, e.g. (query %d, match %d)",
+                len(unknown), num_frames - 1, *unknown[0],
+            )
+        return new
+
+
+def checked_frame(name: str, frame_index: int, expected_index: int, odom: Pose2D, *, finished: bool = False) -> tuple[float, float, float]:
+    """Validate :meth:`Verifier.add_frame` input; returns the odometry as ``(x_m, y_m, yaw_rad)``.
+
+    Raises:
+        VerificationError: after ``result()`` (``finished``), out of order, or non-finite odometry.
+    """
+    if finished:
+        raise VerificationError(f"{name}: add_frame after result()", fix="build a new verifier")
+    if frame_index != expected_index:
+        raise VerificationError(
+            f"{name}: frame {frame_index} added, expected frame {expected_index}",
+            fix="feed frames in order, each exactly once",
+        )
+    values = (float(odom[0]), float(odom[1]), float(odom[2]))
+    if not all(np.isfinite(values)):
+        raise VerificationError(f"{name}: frame {frame_index} has non-finite odometry {values}")
+    return values
+
+
+def default_informations(config: VerificationConfig, odometry_information: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(odometry (3, 3), loop default (3, 3))`` information matrices for a run.
+
+    The odometry information is the log's (g2o logs carry it), else the config's default; the
+    loop information applies to candidates that carry none ("same place" from retrieval).
+    """
+    odom = config.odometry_information_matrix() if odometry_information is None else odometry_information
+    return (
+        as_information_matrix(odom, what="odometry"),
+        as_information_matrix(config.loop_information_matrix(), what="default loop constraint"),
+    )

@@ -18,9 +18,10 @@ Registered methods (``--method``):
     known inliers, ``weightsTol`` 1e-9 (GTSAM's 1e-4 stops after 1-2 iterations with every
     weight ~1e-5 on KITTI candidates); a loop is accepted when its final weight exceeds 0.5.
 ``oracle``
-    Only the true loops, solved with Levenberg-Marquardt: the reference for ATE. It needs the
-    truth: call :meth:`OracleVerifier.set_true_pairs` before feeding frames (the bench does it
-    from the log's labels, else its ground truth; see :func:`needs_truth`).
+    Only the true loops, solved with Levenberg-Marquardt: the reference for ATE. It has the
+    :class:`~lcv_replay.verification.base.NeedsTruth` capability: the replay and the bench call
+    :meth:`OracleVerifier.set_truth` with the truth that judges the run (the log's labels, else its
+    ground truth) before feeding frames.
 
 All of them are fed frame by frame and never read the future. With ``baselines.solve_every =
 "end"`` (the default) a batch method solves once in :meth:`result`, from the odometry: the classic
@@ -36,102 +37,30 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Iterable, Sequence
+from typing import Sequence
 
 import numpy as np
 
+from lcv_replay import se2
 from lcv_replay.errors import VerificationError
 from lcv_replay.records import LoopCandidate, Pose2D
-from lcv_replay.verification import pose_graph
-from lcv_replay.verification.base import Constraint, HypothesisSummary, VerificationResult, VerifierStep
+from lcv_replay.verification import measurements, pose_graph
+from lcv_replay.verification.base import (
+    Constraint,
+    ConstraintHistory,
+    HypothesisSummary,
+    PairTruth,
+    VerificationResult,
+    VerifierStep,
+    checked_frame,
+    default_informations,
+)
 from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.registry import register
 
 log = logging.getLogger(__name__)
 
 IR_ONLY_COUNTS = (10, 20, 30, 40, 50)  # the paper's X values for the ir-only baseline
-
-
-# ----------------------------------------------------------------------------------------------
-# Constraint history: admission of candidates (shared by every baseline)
-# ----------------------------------------------------------------------------------------------
-
-
-@dataclass
-class AdmissionStats:
-    """Counts of candidates not admitted as new constraints."""
-
-    unknown_frames: int = 0
-    self_loops: int = 0
-    duplicates: int = 0
-
-
-class ConstraintHistory:
-    """The growing constraint history: ids in arrival order, duplicates and self-loops merged.
-
-    A candidate is rejected (counted, with a warning) when it references a frame not yet added or
-    is not oriented ``query_frame > match_frame``; a self-loop (``query == match``) or a pair
-    already in the history is merged (dropped, counted). Its information matrix is validated on
-    arrival, so a singular one is reported naming the constraint.
-    """
-
-    def __init__(self, loop_default_information: np.ndarray):
-        self.loop_default_information = loop_default_information
-        self.constraints: list[Constraint] = []
-        self.stats = AdmissionStats()
-        self._pairs: set[tuple[int, int]] = set()
-
-    def __len__(self) -> int:
-        return len(self.constraints)
-
-    def admit(self, candidates: Sequence[LoopCandidate], num_frames: int) -> list[Constraint]:
-        """Admit ``candidates`` given frames ``0..num_frames-1``; returns the new constraints."""
-        new: list[Constraint] = []
-        unknown = []
-        arrival = num_frames - 1
-        for cand in candidates:
-            q, m = cand.query_frame, cand.match_frame
-            if q == m:
-                self.stats.self_loops += 1
-                continue
-            if not (0 <= m < q < num_frames):
-                unknown.append((q, m))
-                continue
-            if cand.pair in self._pairs:
-                self.stats.duplicates += 1
-                continue
-            constraint = Constraint(len(self.constraints), cand, arrival)
-            pose_graph.loop_measurement(constraint, self.loop_default_information)  # validates Ω
-            self._pairs.add(cand.pair)
-            self.constraints.append(constraint)
-            new.append(constraint)
-        if unknown:
-            self.stats.unknown_frames += len(unknown)
-            log.warning(
-                "rejected %d loop candidate(s) referencing frames outside 0..%d or not oriented "
-                "query > match, e.g. (query %d, match %d)",
-                len(unknown), num_frames - 1, *unknown[0],
-            )
-        return new
-
-
-def checked_frame(name: str, frame_index: int, expected_index: int, odom: Pose2D, *, finished: bool = False) -> tuple[float, float, float]:
-    """Validate :meth:`Verifier.add_frame` input; returns the odometry as ``(x_m, y_m, yaw_rad)``.
-
-    Raises:
-        VerificationError: after ``result()`` (``finished``), out of order, or non-finite odometry.
-    """
-    if finished:
-        raise VerificationError(f"{name}: add_frame after result()", fix="build a new verifier")
-    if frame_index != expected_index:
-        raise VerificationError(
-            f"{name}: frame {frame_index} added, expected frame {expected_index}",
-            fix="feed frames in order, each exactly once",
-        )
-    values = (float(odom[0]), float(odom[1]), float(odom[2]))
-    if not all(np.isfinite(values)):
-        raise VerificationError(f"{name}: frame {frame_index} has non-finite odometry {values}")
-    return values
 
 
 # ----------------------------------------------------------------------------------------------
@@ -152,19 +81,6 @@ class BatchSolution:
     poses: np.ndarray
     accepted_ids: tuple[int, ...]
     chi2: float | None = None
-
-
-def default_informations(config: VerificationConfig, odometry_information: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """``(odometry (3, 3), loop default (3, 3))`` information matrices for a run.
-
-    The odometry information is the log's (g2o logs carry it), else the config's default; the
-    loop information applies to candidates that carry none ("same place" from retrieval).
-    """
-    odom = config.odometry_information_matrix() if odometry_information is None else odometry_information
-    return (
-        pose_graph.as_information_matrix(odom, what="odometry"),
-        pose_graph.as_information_matrix(config.loop_information_matrix(), what="default loop constraint"),
-    )
 
 
 class BatchVerifier:
@@ -243,7 +159,7 @@ class BatchVerifier:
         odom = self.odometry
         if self._estimate is None:
             return odom.copy()
-        return pose_graph.extend_by_odometry(self._estimate, odom)
+        return measurements.extend_by_odometry(self._estimate, odom)
 
     def _consistent(self, poses: np.ndarray) -> np.ndarray:
         """``(C,)`` bool: the paper's T_p test (sec. II-A) of every constraint against ``poses``."""
@@ -305,8 +221,8 @@ def _chi2_below(poses: np.ndarray, constraints: Sequence[Constraint], loop_infor
     """``(C,)`` bool: whitened chi-square of each loop at ``poses`` below ``limit``."""
     if not constraints:
         return np.zeros(0, dtype=bool)
-    match_idx, query_idx, measured, info = pose_graph.loop_arrays(constraints, loop_information)
-    return pose_graph.between_chi2(poses, match_idx, query_idx, measured, info) < limit
+    match_idx, query_idx, measured, info = measurements.loop_arrays(constraints, loop_information)
+    return se2.between_chi2(poses, match_idx, query_idx, measured, info) < limit
 
 
 class OdometryOnlyVerifier(BatchVerifier):
@@ -351,26 +267,26 @@ class IrOnlyVerifier(LeastSquaresVerifier):
 
 
 class OracleVerifier(LeastSquaresVerifier):
-    """``oracle``: only the true loops. Call :meth:`set_true_pairs` before the first solve."""
+    """``oracle``: only the true loops (:class:`~lcv_replay.verification.base.NeedsTruth`: call
+    :meth:`set_truth` before the first solve)."""
 
     name = "oracle"
-    needs_truth = True
 
     def __init__(self, config: VerificationConfig, *, odometry_information=None):
         super().__init__(config, odometry_information=odometry_information)
-        self._true_pairs: frozenset[tuple[int, int]] | None = None
+        self._is_true: PairTruth | None = None
 
-    def set_true_pairs(self, pairs: Iterable[tuple[int, int]]) -> None:
-        """The true ``(query_frame, match_frame)`` pairs (either orientation) of the whole log."""
-        self._true_pairs = frozenset((max(a, b), min(a, b)) for a, b in pairs)
+    def set_truth(self, is_true: PairTruth) -> None:
+        """``is_true(query_frame, match_frame)``: whether a loop is true."""
+        self._is_true = is_true
 
     def select(self, constraints):
-        if self._true_pairs is None:
+        if self._is_true is None:
             raise VerificationError(
                 "the oracle needs the log's true loops",
                 fix="use a log with /ground_truth/loops labels or ground truth, or another method",
             )
-        return tuple(i for i, c in enumerate(constraints) if c.candidate.pair in self._true_pairs)
+        return tuple(i for i, c in enumerate(constraints) if self._is_true(c.query_frame, c.match_frame))
 
 
 class RobustKernelVerifier(BatchVerifier):
@@ -411,11 +327,6 @@ class GncVerifier(BatchVerifier):
         loop_weights = weights[pose_graph.loop_factor_index(n, 0):]
         accepted = tuple(int(i) for i in np.flatnonzero(loop_weights > self.baseline.gnc_accept_weight))
         return BatchSolution(solution.poses, accepted, solution.chi2)
-
-
-def needs_truth(verifier: object) -> bool:
-    """Whether ``verifier`` must be given the log's true pairs (``set_true_pairs``) before use."""
-    return bool(getattr(verifier, "needs_truth", False))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -3,7 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
+
+from lcv_replay.errors import require
+
+if TYPE_CHECKING:  # pragma: no cover
+    import numpy as np
 
 
 @dataclass(frozen=True)
@@ -22,8 +27,6 @@ class BaselineConfig:
     max_iterations: int = 100  # Levenberg-Marquardt / GNC iteration cap
 
     def __post_init__(self) -> None:
-        from lcv_replay.config import require
-
         require(self.accept_chi2 > 0, "verification.baselines.accept_chi2", self.accept_chi2, "a number > 0")
         require(self.dcs_phi > 0, "verification.baselines.dcs_phi", self.dcs_phi, "a number > 0")
         require(self.gm_c > 0, "verification.baselines.gm_c", self.gm_c, "a number > 0")
@@ -59,8 +62,6 @@ class IlvPlusConfig:
     calibration_confidence: float = 0.9999  # the calibrated gate is this quantile of the fitted statistic (of 2,000 true loops, 0.2 expected beyond it)
 
     def __post_init__(self) -> None:
-        from lcv_replay.config import require
-
         require(self.gate_chi2 > 0, "verification.ilv_plus.gate_chi2", self.gate_chi2, "a number > 0")
         require(self.explore_chi2 >= self.gate_chi2, "verification.ilv_plus.explore_chi2", self.explore_chi2, "a number >= gate_chi2")
         require(self.min_loop_gap_frames >= 0, "verification.ilv_plus.min_loop_gap_frames", self.min_loop_gap_frames, "an integer >= 0")
@@ -94,8 +95,6 @@ class VerificationConfig:
     baselines: BaselineConfig = field(default_factory=BaselineConfig)  # baseline verifiers
 
     def __post_init__(self) -> None:
-        from lcv_replay.config import require
-
         require(self.consistency_radius_m > 0, "verification.consistency_radius_m", self.consistency_radius_m, "a number > 0")
         require(self.window_frames >= 1, "verification.window_frames", self.window_frames, "an integer >= 1")
         require(self.iterations_per_window >= 1, "verification.iterations_per_window", self.iterations_per_window, "an integer >= 1")

@@ -7,7 +7,7 @@ constraints. It is stored as the poses of the frames its graph solved (``node_fr
   optimisation; frames added later extend it by odometry from frame ``M-1``;
 * ``ilv+`` solves a reduced graph whose nodes are frame 0 and its constraints' endpoints; the other
   frames are the Brownian-bridge interpolation of the odometry between nodes
-  (:meth:`~lcv_replay.verification.pose_graph.OdometryChain.interpolate`), extended by odometry
+  (:meth:`~lcv_replay.verification.measurements.OdometryChain.interpolate`), extended by odometry
   after the last node.
 
 Either way a hypothesis never changes after it is created, which is what makes the consistency
@@ -25,7 +25,7 @@ from typing import AbstractSet, Mapping
 
 import numpy as np
 
-from lcv_replay.verification.pose_graph import OdometryChain
+from lcv_replay.verification.measurements import OdometryChain
 
 
 @dataclass(frozen=True, eq=False)

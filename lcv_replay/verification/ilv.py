@@ -66,15 +66,16 @@ from typing import Sequence
 
 import numpy as np
 
+from lcv_replay import se2
 from lcv_replay.verification import pose_graph
 from lcv_replay.verification.base import Constraint
-from lcv_replay.verification.baselines import ConstraintHistory
+from lcv_replay.verification.base import ConstraintHistory
 from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.consistency import mahalanobis_d2, position_consistent
 from lcv_replay.verification.hypotheses import Hypothesis
 from lcv_replay.verification.incremental import IncrementalVerifier
+from lcv_replay.verification.measurements import OdometryChain
 from lcv_replay.verification.noise_scale import NoiseFit, calibrated_gate
-from lcv_replay.verification.pose_graph import OdometryChain
 from lcv_replay.verification.registry import register
 
 log = logging.getLogger(__name__)
@@ -256,10 +257,10 @@ class PlusModel:
         initial = warm.poses_at(self.chain, nodes)
         solution = pose_graph.optimise_lm(graph, initial, keys=nodes, max_iterations=self.config.max_iterations)
         a, b = nodes[:-1], nodes[1:]
-        steps = pose_graph.se2_between(self.chain.poses[a], self.chain.poses[b])
+        steps = se2.between(self.chain.poses[a], self.chain.poses[b])
         info = np.linalg.inv(self.chain.segment_covariance(a, b)) if len(a) else np.zeros((0, 3, 3))
         idx = np.arange(len(nodes))
-        odometry = float(pose_graph.between_chi2(solution.poses, idx[:-1], idx[1:], steps, info).sum()) if len(a) else 0.0
+        odometry = float(se2.between_chi2(solution.poses, idx[:-1], idx[1:], steps, info).sum()) if len(a) else 0.0
         return nodes, solution.poses, solution.chi2, odometry
 
     def absorb(self, parent: Hypothesis, *, hypothesis_id: int, window: int) -> Hypothesis | None:
@@ -418,7 +419,7 @@ class PlusModel:
     def _residuals(self, hypothesis: Hypothesis, ids: np.ndarray) -> np.ndarray:
         """``(K, 3)`` loop residuals ``Log(z⁻¹ x_m⁻¹ x_q)`` at the hypothesis' solution."""
         x_m, x_q = np.split(hypothesis.poses_at(self.chain, np.concatenate([self._m[ids], self._q[ids]])), 2)
-        return pose_graph.se2_logmap(pose_graph.se2_between(self._z[ids], pose_graph.se2_between(x_m, x_q)))
+        return se2.logmap(se2.between(self._z[ids], se2.between(x_m, x_q)))
 
     def evaluate(self, hypothesis: Hypothesis, constraint_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ids = np.asarray(constraint_ids, dtype=np.int64)

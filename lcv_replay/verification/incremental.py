@@ -1,7 +1,7 @@
 """The incremental schedule of multi-model hypothesize-and-verify (paper sec. II-D).
 
 :class:`IncrementalVerifier` is the thin stateful shell shared by ``ilv`` and ``ilv+``. It owns the
-frames (an :class:`~lcv_replay.verification.pose_graph.OdometryChain`), the constraint history,
+frames (an :class:`~lcv_replay.verification.measurements.OdometryChain`), the constraint history,
 the kept hypotheses, the consistency table and the random generator; a :class:`HypothesisModel`
 says how a hypothesis is solved, tested against constraints and ranked.
 
@@ -44,7 +44,7 @@ import numpy as np
 from lcv_replay.errors import VerificationError
 from lcv_replay.records import LoopCandidate, Pose2D
 from lcv_replay.verification.base import Constraint, HypothesisSummary, VerificationResult, VerifierStep
-from lcv_replay.verification.baselines import ConstraintHistory, checked_frame, default_informations
+from lcv_replay.verification.base import ConstraintHistory, checked_frame, default_informations
 from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.consistency import ConsistencyTable, position_consistent
 from lcv_replay.verification.hypotheses import (
@@ -55,7 +55,8 @@ from lcv_replay.verification.hypotheses import (
     rank_order,
     selectable_constraints,
 )
-from lcv_replay.verification.pose_graph import OdometryChain, OptimisationFailed
+from lcv_replay.verification.measurements import OdometryChain
+from lcv_replay.verification.pose_graph import OptimisationFailed
 
 log = logging.getLogger(__name__)
 

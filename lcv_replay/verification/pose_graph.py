@@ -13,10 +13,11 @@ Conventions:
   Candidates without a relative pose (place recognition says "same place") use the identity with
   the config's ``loop_default_information``.
 * Chi-square values are GTSAM's: ``chi2 = r^T Ω r`` with ``r = Logmap(z⁻¹ · (x_i⁻¹ x_j))``,
-  i.e. ``2 × factor.error``. The numpy functions here (:func:`between_chi2`, :func:`loop_chi2`,
-  :func:`odometry_chi2`) reproduce GTSAM's value without building a graph, for scoring many
-  hypotheses cheaply.
+  i.e. ``2 × factor.error``; :func:`lcv_replay.se2.between_chi2` reproduces it without building a
+  graph, for scoring many hypotheses cheaply.
 
+The numpy side (SE(2) algebra in :mod:`lcv_replay.se2`; information matrices, loop measurements and
+the odometry chain in :mod:`lcv_replay.verification.measurements`) lives outside this module.
 ``gtsam`` is imported lazily inside the functions that need it, so importing this module is cheap.
 """
 
@@ -28,8 +29,16 @@ from typing import TYPE_CHECKING, Literal, NamedTuple, Sequence
 
 import numpy as np
 
+from lcv_replay import se2
 from lcv_replay.errors import VerificationError
-from lcv_replay.records import Pose2D
+from lcv_replay.verification.measurements import (
+    OdometryChain,
+    as_information_matrix,
+    check_poses,
+    describe_constraint,
+    loop_measurement,
+    odometry_between,
+)
 
 if TYPE_CHECKING:  # pragma: no cover
     import gtsam
@@ -107,135 +116,6 @@ class PoseGraphSolution:
         return 2.0 * self.error
 
 
-# ----------------------------------------------------------------------------------------------
-# SE(2) on arrays (vectorised, the same maths as gtsam.Pose2)
-# ----------------------------------------------------------------------------------------------
-
-
-def wrap_angles(angles_rad: np.ndarray) -> np.ndarray:
-    """Wrap angles to ``[-pi, pi)`` (any shape)."""
-    return (np.asarray(angles_rad) + np.pi) % (2.0 * np.pi) - np.pi
-
-
-def se2_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a ∘ b`` for ``(..., 3)`` pose arrays (broadcasting)."""
-    a = np.asarray(a, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.float64)
-    out[..., 0] = a[..., 0] + c * b[..., 0] - s * b[..., 1]
-    out[..., 1] = a[..., 1] + s * b[..., 0] + c * b[..., 1]
-    out[..., 2] = wrap_angles(a[..., 2] + b[..., 2])
-    return out
-
-
-def se2_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a⁻¹ ∘ b`` for ``(..., 3)`` pose arrays: with ``a = T_w_i``, ``b = T_w_j`` this is ``T_i_j``."""
-    a = np.asarray(a, dtype=np.float64)
-    b = np.asarray(b, dtype=np.float64)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    dx = b[..., 0] - a[..., 0]
-    dy = b[..., 1] - a[..., 1]
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.float64)
-    out[..., 0] = c * dx + s * dy
-    out[..., 1] = -s * dx + c * dy
-    out[..., 2] = wrap_angles(b[..., 2] - a[..., 2])
-    return out
-
-
-def se2_logmap(pose: np.ndarray) -> np.ndarray:
-    """``Pose2.Logmap`` of ``(..., 3)`` poses: tangent vectors ``(..., 3)`` ``[v_x, v_y, ω]``."""
-    pose = np.asarray(pose, dtype=np.float64)
-    w = wrap_angles(pose[..., 2])
-    half = 0.5 * w
-    small = np.abs(w) < 1e-6
-    safe_half = np.where(small, 1.0, half)
-    k = np.where(small, 1.0 - w * w / 12.0, safe_half * np.cos(safe_half) / np.sin(safe_half))
-    x, y = pose[..., 0], pose[..., 1]
-    out = np.empty(pose.shape, dtype=np.float64)
-    out[..., 0] = k * x + half * y
-    out[..., 1] = -half * x + k * y
-    out[..., 2] = w
-    return out
-
-
-def se2_expmap(xi: np.ndarray) -> np.ndarray:
-    """``Pose2.Expmap`` of ``(..., 3)`` tangent vectors ``[v_x, v_y, ω]`` -> poses ``(..., 3)``."""
-    xi = np.asarray(xi, dtype=np.float64)
-    w = xi[..., 2]
-    small = np.abs(w) < 1e-6
-    safe_w = np.where(small, 1.0, w)
-    a = np.where(small, 1.0 - w * w / 6.0, np.sin(safe_w) / safe_w)  # sin(w)/w
-    b = np.where(small, 0.5 * w, (1.0 - np.cos(safe_w)) / safe_w)  # (1-cos(w))/w
-    out = np.empty(xi.shape, dtype=np.float64)
-    out[..., 0] = a * xi[..., 0] - b * xi[..., 1]
-    out[..., 1] = b * xi[..., 0] + a * xi[..., 1]
-    out[..., 2] = wrap_angles(w)
-    return out
-
-
-def se2_adjoint(poses: np.ndarray) -> np.ndarray:
-    """``Pose2.AdjointMap`` of ``(..., 3)`` poses -> ``(..., 3, 3)``: ``T Exp(ξ) = Exp(Ad(T) ξ) T``."""
-    poses = np.asarray(poses, dtype=np.float64)
-    c, s = np.cos(poses[..., 2]), np.sin(poses[..., 2])
-    ad = np.zeros(poses.shape[:-1] + (3, 3), dtype=np.float64)
-    ad[..., 0, 0], ad[..., 0, 1], ad[..., 0, 2] = c, -s, poses[..., 1]
-    ad[..., 1, 0], ad[..., 1, 1], ad[..., 1, 2] = s, c, -poses[..., 0]
-    ad[..., 2, 2] = 1.0
-    return ad
-
-
-def se2_adjoint_inverse(poses: np.ndarray) -> np.ndarray:
-    """``Ad(T)⁻¹ = Ad(T⁻¹)`` for ``(..., 3)`` poses -> ``(..., 3, 3)``."""
-    poses = np.asarray(poses, dtype=np.float64)
-    c, s = np.cos(poses[..., 2]), np.sin(poses[..., 2])
-    x, y = poses[..., 0], poses[..., 1]
-    ad = np.zeros(poses.shape[:-1] + (3, 3), dtype=np.float64)
-    ad[..., 0, 0], ad[..., 0, 1], ad[..., 0, 2] = c, s, s * x - c * y
-    ad[..., 1, 0], ad[..., 1, 1], ad[..., 1, 2] = -s, c, c * x + s * y
-    ad[..., 2, 2] = 1.0
-    return ad
-
-
-# ----------------------------------------------------------------------------------------------
-# Measurements and noise
-# ----------------------------------------------------------------------------------------------
-
-
-def upper6_to_matrix(upper6: Sequence[float]) -> np.ndarray:
-    """g2o upper triangle ``(I_xx, I_xy, I_xθ, I_yy, I_yθ, I_θθ)`` -> symmetric ``(3, 3)``."""
-    a, b, c, d, e, f = (float(v) for v in upper6)
-    return np.array([[a, b, c], [b, d, e], [c, e, f]], dtype=np.float64)
-
-
-def as_information_matrix(information, *, what: str) -> np.ndarray:
-    """Validate ``information`` (``(3, 3)`` or upper-6) as symmetric positive definite.
-
-    Raises:
-        VerificationError: naming ``what`` (e.g. ``"loop constraint 12 (query 530, match 40)"``)
-            when the matrix is malformed, not finite or not positive definite.
-    """
-    arr = np.asarray(information, dtype=np.float64)
-    if arr.shape == (6,):
-        arr = upper6_to_matrix(arr)
-    if arr.shape != (3, 3):
-        raise VerificationError(
-            f"{what}: information matrix has shape {arr.shape}, expected (3, 3) or 6 upper-triangle values"
-        )
-    if not np.all(np.isfinite(arr)):
-        raise VerificationError(f"{what}: information matrix has non-finite entries", fix="check the source log")
-    arr = 0.5 * (arr + arr.T)
-    try:
-        np.linalg.cholesky(arr)
-    except np.linalg.LinAlgError:
-        raise VerificationError(
-            f"{what}: information matrix is singular or not positive definite "
-            f"(eigenvalues {np.round(np.linalg.eigvalsh(arr), 6).tolist()})",
-            fix="give it a positive-definite information matrix, or drop it from the source",
-        ) from None
-    return arr
-
-
 def information_to_noise(information, *, what: str = "factor"):
     """A ``gtsam.noiseModel.Gaussian`` from a ``(3, 3)`` (or upper-6) information matrix.
 
@@ -245,269 +125,6 @@ def information_to_noise(information, *, what: str = "factor"):
     import gtsam
 
     return gtsam.noiseModel.Gaussian.Information(as_information_matrix(information, what=what))
-
-
-def describe_constraint(constraint: "Constraint") -> str:
-    """``"loop constraint 12 (query 530, match 40)"``: how errors name a constraint."""
-    return f"loop constraint {constraint.id} (query {constraint.query_frame}, match {constraint.match_frame})"
-
-
-def loop_measurement(constraint: "Constraint", default_information: np.ndarray) -> tuple[Pose2D, np.ndarray]:
-    """The measured ``T_match_query`` and its ``(3, 3)`` information for a loop constraint.
-
-    A candidate without a relative pose ("same place", from place recognition) is the identity
-    with ``default_information``; a candidate without an information matrix uses
-    ``default_information`` too.
-
-    Raises:
-        VerificationError: naming the constraint when its information is singular.
-    """
-    cand = constraint.candidate
-    measured = cand.T_match_query if cand.T_match_query is not None else Pose2D(0.0, 0.0, 0.0)
-    info = cand.information if cand.information is not None else default_information
-    return measured, as_information_matrix(info, what=describe_constraint(constraint))
-
-
-def loop_arrays(
-    constraints: Sequence["Constraint"], default_information: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Constraints as arrays for vectorised chi-square.
-
-    Returns:
-        ``(match_idx (C,), query_idx (C,), measured (C, 3), information (C, 3, 3))``.
-    """
-    n = len(constraints)
-    match_idx = np.empty(n, dtype=np.int64)
-    query_idx = np.empty(n, dtype=np.int64)
-    measured = np.empty((n, 3), dtype=np.float64)
-    info = np.empty((n, 3, 3), dtype=np.float64)
-    for k, c in enumerate(constraints):
-        z, omega = loop_measurement(c, default_information)
-        match_idx[k], query_idx[k] = c.match_frame, c.query_frame
-        measured[k] = z
-        info[k] = omega
-    return match_idx, query_idx, measured, info
-
-
-def odometry_between(odom_poses: np.ndarray) -> np.ndarray:
-    """Relative odometry steps ``T_k_k+1``: ``(N, 3)`` cumulative poses -> ``(N-1, 3)``."""
-    odom = _check_poses(odom_poses, "odom_poses")
-    return se2_between(odom[:-1], odom[1:])
-
-
-def extend_by_odometry(poses: np.ndarray, odom_poses: np.ndarray) -> np.ndarray:
-    """Extend an estimate of frames ``0..M-1`` to frames ``0..N-1`` by chaining odometry.
-
-    Frame ``k >= M`` gets ``poses[M-1] ∘ (odom[M-1]⁻¹ ∘ odom[k])``, which is the chain of the
-    odometry steps after ``M-1``.
-
-    Args:
-        poses: ``(M, 3)`` estimate, ``1 <= M <= N``.
-        odom_poses: ``(N, 3)`` cumulative odometry.
-
-    Returns:
-        ``(N, 3)``; the first ``M`` rows are ``poses`` (a copy).
-    """
-    poses = _check_poses(poses, "poses")
-    odom = _check_poses(odom_poses, "odom_poses")
-    m, n = len(poses), len(odom)
-    if m > n or m == 0:
-        raise VerificationError(f"cannot extend an estimate of {m} frames by odometry of {n} frames")
-    out = np.empty((n, 3), dtype=np.float64)
-    out[:m] = poses
-    if n > m:
-        out[m:] = se2_compose(poses[m - 1], se2_between(odom[m - 1], odom[m:]))
-    return out
-
-
-# ----------------------------------------------------------------------------------------------
-# The odometry chain as a random walk: O(1) covariance of any segment, Brownian-bridge interpolation
-# ----------------------------------------------------------------------------------------------
-
-
-class OdometryChain:
-    """A growing cumulative odometry ``O_0..O_{N-1}`` with its first-order uncertainty model.
-
-    Model (linearised at the odometry): the pose of frame k is ``x_k = Exp(ξ_k) O_k`` with ``ξ``
-    a world-frame left perturbation; each step adds its noise ``ε_k ~ N(0, Σ)`` (right
-    perturbation, GTSAM's ``BetweenFactor`` convention), so ``ξ_{k+1} = ξ_k + Ad(O_{k+1}) ε_k``
-    is a random walk with ``ξ_0 = 0`` (the prior) and ``Cov(ξ_a, ξ_b) = S[min(a, b)]`` where
-    ``S[k] = Σ_{j<k} Ad(O_{j+1}) Σ Ad(O_{j+1})ᵀ``. The prefix sums ``S`` make the covariance of
-    any segment, and of any pair of loop residuals, O(1).
-
-    Args:
-        odom_information: ``(3, 3)`` information of one odometry step.
-    """
-
-    def __init__(self, odom_information: np.ndarray):
-        self.information = as_information_matrix(odom_information, what="odometry")
-        self.step_covariance = np.linalg.inv(self.information)
-        self._poses = np.zeros((0, 3))
-        self._prefix = np.zeros((0, 3, 3))
-        self._n = 0
-
-    def __len__(self) -> int:
-        return self._n
-
-    @property
-    def poses(self) -> np.ndarray:
-        """``(N, 3)`` cumulative odometry (a read-only view)."""
-        view = self._poses[: self._n]
-        view.flags.writeable = False
-        return view
-
-    @property
-    def prefix(self) -> np.ndarray:
-        """``(N, 3, 3)`` ``S[k] = Cov(ξ_k)`` (a read-only view)."""
-        view = self._prefix[: self._n]
-        view.flags.writeable = False
-        return view
-
-    def extend(self, poses: np.ndarray) -> None:
-        """Append ``(K, 3)`` cumulative odometry poses (amortised O(K))."""
-        poses = _check_poses(poses, "poses")
-        k = len(poses)
-        if k == 0:
-            return
-        if self._n + k > len(self._poses):
-            capacity = max(2 * len(self._poses), self._n + k, 64)
-            self._poses = _grow(self._poses, capacity)
-            self._prefix = _grow(self._prefix, capacity)
-        self._poses[self._n : self._n + k] = poses
-        base = self._prefix[self._n - 1] if self._n else None
-        self._prefix[self._n : self._n + k] = random_walk_prefix(poses, self.step_covariance, base)
-        self._n += k
-
-    def segment_covariance(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """Covariance of the composed odometry ``O_a⁻¹ O_b`` (right perturbation at ``b``, the
-        convention of GTSAM's ``BetweenFactor``): ``Ad(O_b)⁻¹ (S[b] - S[a]) Ad(O_b)⁻ᵀ``.
-
-        Args:
-            a, b: ``(K,)`` frame indices with ``a < b``.
-
-        Returns:
-            ``(K, 3, 3)``.
-        """
-        a = np.asarray(a, dtype=np.int64)
-        b = np.asarray(b, dtype=np.int64)
-        inv_ad = se2_adjoint_inverse(self._poses[b])
-        return inv_ad @ (self._prefix[b] - self._prefix[a]) @ np.swapaxes(inv_ad, -1, -2)
-
-    def interpolate(self, node_frames: np.ndarray, node_poses: np.ndarray, frames: np.ndarray) -> np.ndarray:
-        """Poses of ``frames`` given the estimated poses of ``node_frames``.
-
-        Between two nodes ``a < k < b`` the correction to the odometry is the conditional mean of
-        the random walk given both ends (a Brownian bridge, expressed in the frame of ``a``):
-        ``x_k = x_a Exp(ζ_k) O_a⁻¹ O_k`` with ``ζ_k = Ad(O_a)⁻¹ (S[k]-S[a]) (S[b]-S[a])⁻¹ Ad(O_a) ζ_b``
-        and ``ζ_b = Log(x_a⁻¹ x_b (O_a⁻¹ O_b)⁻¹)``. After the last node, frames are extended by
-        odometry (``ζ = 0``). This is the MAP of the full chain given the nodes, to first order.
-
-        Args:
-            node_frames: ``(K,)`` strictly increasing frame indices, ``node_frames[0] == 0``.
-            node_poses: ``(K, 3)`` their estimated poses.
-            frames: ``(F,)`` frame indices in ``0..N-1``.
-
-        Returns:
-            ``(F, 3)`` poses.
-        """
-        node_frames = np.asarray(node_frames, dtype=np.int64)
-        frames = np.asarray(frames, dtype=np.int64)
-        odom = self._poses
-        seg = np.searchsorted(node_frames, frames, side="right") - 1
-        a = node_frames[seg]
-        xa = node_poses[seg]
-        rel = se2_between(odom[a], odom[frames])  # O_a⁻¹ O_k
-        out = se2_compose(xa, rel)  # extension by odometry from node a
-        interior = (seg + 1 < len(node_frames)) & (frames != a)
-        if np.any(interior):
-            s_idx = seg[interior]
-            a_i, b_i, k_i = node_frames[s_idx], node_frames[s_idx + 1], frames[interior]
-            x_a, x_b = node_poses[s_idx], node_poses[s_idx + 1]
-            odo_ab = se2_between(odom[a_i], odom[b_i])
-            zeta_b = se2_logmap(se2_compose(se2_between(x_a, x_b), _se2_inverse(odo_ab)))
-            ad_a = se2_adjoint(odom[a_i])
-            inv_ad_a = se2_adjoint_inverse(odom[a_i])
-            S = self._prefix
-            gain = np.linalg.solve(S[b_i] - S[a_i], (ad_a @ zeta_b[:, :, None]))  # (K, 3, 1)
-            zeta_k = (inv_ad_a @ (S[k_i] - S[a_i]) @ gain)[:, :, 0]
-            out[interior] = se2_compose(se2_compose(x_a, se2_expmap(zeta_k)), rel[interior])
-        return out
-
-
-def random_walk_prefix(poses: np.ndarray, step_covariance: np.ndarray, base: np.ndarray | None = None) -> np.ndarray:
-    """Prefix sums ``S[k] = Σ_{j<k} Ad(X_{j+1}) Σ Ad(X_{j+1})ᵀ`` of the odometry random walk
-    linearised at the poses ``X`` (see :class:`OdometryChain`).
-
-    Args:
-        poses: ``(K, 3)`` poses ``X`` of consecutive frames.
-        step_covariance: ``(3, 3)`` covariance of one odometry step.
-        base: ``(3, 3)`` prefix sum of the frame before ``poses[0]``, or ``None`` when
-            ``poses[0]`` is frame 0 (fixed by the prior, ``S[0] = 0``).
-
-    Returns:
-        ``(K, 3, 3)``.
-    """
-    ad = se2_adjoint(poses)
-    q = ad @ step_covariance @ np.swapaxes(ad, -1, -2)
-    if base is None:
-        q[0] = 0.0
-        base = np.zeros((3, 3))
-    return base + np.cumsum(q, axis=0)
-
-
-def _se2_inverse(poses: np.ndarray) -> np.ndarray:
-    return se2_between(poses, np.zeros_like(poses))
-
-
-def _grow(array: np.ndarray, capacity: int) -> np.ndarray:
-    out = np.zeros((capacity,) + array.shape[1:], dtype=array.dtype)
-    out[: len(array)] = array
-    return out
-
-
-# ----------------------------------------------------------------------------------------------
-# Chi-square without a graph (numpy; equals GTSAM's 2 × factor.error for Gaussian factors)
-# ----------------------------------------------------------------------------------------------
-
-
-def between_residuals(poses: np.ndarray, i_idx: np.ndarray, j_idx: np.ndarray, measured: np.ndarray) -> np.ndarray:
-    """Residuals ``Logmap(z⁻¹ · (x_i⁻¹ x_j))`` of between factors: ``(K,)`` indices -> ``(K, 3)``."""
-    rel = se2_between(poses[i_idx], poses[j_idx])
-    return se2_logmap(se2_between(measured, rel))
-
-
-def between_chi2(
-    poses: np.ndarray, i_idx: np.ndarray, j_idx: np.ndarray, measured: np.ndarray, information: np.ndarray
-) -> np.ndarray:
-    """Whitened chi-square ``r^T Ω r`` of between factors.
-
-    Args:
-        poses: ``(N, 3)``; ``i_idx``, ``j_idx``: ``(K,)`` frame indices; ``measured``: ``(K, 3)``
-            ``T_i_j``; ``information``: ``(3, 3)`` shared or ``(K, 3, 3)`` per factor.
-
-    Returns:
-        ``(K,)`` chi-square values (3 degrees of freedom each).
-    """
-    r = between_residuals(poses, i_idx, j_idx, measured)
-    if information.ndim == 2:
-        return np.einsum("ki,ij,kj->k", r, information, r)
-    return np.einsum("ki,kij,kj->k", r, information, r)
-
-
-def loop_chi2(poses: np.ndarray, constraint: "Constraint", information: np.ndarray) -> float:
-    """Whitened chi-square of one loop constraint at ``poses`` (``information`` is the default
-    used when the candidate carries none)."""
-    measured, omega = loop_measurement(constraint, information)
-    idx_m = np.array([constraint.match_frame])
-    idx_q = np.array([constraint.query_frame])
-    return float(between_chi2(poses, idx_m, idx_q, np.asarray(measured)[None, :], omega)[0])
-
-
-def odometry_chi2(poses: np.ndarray, odom_poses: np.ndarray, odom_information: np.ndarray) -> np.ndarray:
-    """Whitened chi-square of every odometry factor ``(k, k+1)``: ``(N, 3)`` -> ``(N-1,)``."""
-    n = len(odom_poses)
-    idx = np.arange(n - 1)
-    return between_chi2(poses[:n], idx, idx + 1, odometry_between(odom_poses), odom_information)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -551,7 +168,7 @@ def build_graph(
     """
     import gtsam
 
-    odom = _check_poses(odom_poses, "odom_poses")
+    odom = check_poses(odom_poses, "odom_poses")
     n = len(odom)
     graph = gtsam.NonlinearFactorGraph()
     graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*odom[0]), gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)))
@@ -626,7 +243,7 @@ def build_reduced_graph(chain: OdometryChain, node_frames: np.ndarray, loops: Se
     graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*odom[0]), gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)))
     a, b = node_frames[:-1], node_frames[1:]
     if len(a):
-        steps = se2_between(odom[a], odom[b])
+        steps = se2.between(odom[a], odom[b])
         covariances = chain.segment_covariance(a, b)
         for k in range(len(a)):
             noise = gtsam.noiseModel.Gaussian.Covariance(0.5 * (covariances[k] + covariances[k].T))
@@ -685,7 +302,7 @@ def relative_covariances(graph, poses: np.ndarray, keys: Sequence[int], match: n
     index = np.searchsorted(keys, np.concatenate([match, query]))
     x_m, x_q = np.split(np.asarray(poses, dtype=np.float64)[index], 2)
     jac = np.zeros((len(match), 3, 6))
-    jac[:, :, :3] = -se2_adjoint_inverse(se2_between(x_m, x_q))
+    jac[:, :, :3] = -se2.adjoint_inverse(se2.between(x_m, x_q))
     jac[:, :, 3:] = np.eye(3)
     out[:] = jac @ joints @ np.swapaxes(jac, -1, -2)
     return 0.5 * (out + np.swapaxes(out, -1, -2))
@@ -700,7 +317,7 @@ def initial_values(poses: np.ndarray, keys: Sequence[int] | None = None):
     """``gtsam.Values`` with ``Pose2`` key ``keys[i]`` (default ``i``) = ``poses[i]`` for ``(N, 3)`` poses."""
     import gtsam
 
-    poses = _check_poses(poses, "poses")
+    poses = check_poses(poses, "poses")
     keys = range(len(poses)) if keys is None else [int(k) for k in keys]
     values = gtsam.Values()
     for k, (x, y, yaw) in zip(keys, poses.tolist()):
@@ -807,12 +424,6 @@ def optimise_gnc_tls(
 
 # ----------------------------------------------------------------------------------------------
 
-
-def _check_poses(poses: np.ndarray, name: str) -> np.ndarray:
-    arr = np.asarray(poses, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise VerificationError(f"{name} must have shape (N, 3) [x_m, y_m, yaw_rad], got {arr.shape}")
-    return arr
 
 
 def _first_line(exc: BaseException) -> str:

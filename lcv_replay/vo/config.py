@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from lcv_replay.errors import require
+
 
 @dataclass(frozen=True)
 class VoConfig:
@@ -73,8 +75,6 @@ class VoConfig:
     max_bridge_frames: int = 5
 
     def __post_init__(self) -> None:
-        from lcv_replay.config import require
-
         require(1 <= self.fast_threshold <= 254, "vo.fast_threshold", self.fast_threshold, "an integer in 1..254")
         require(self.buckets >= 1, "vo.buckets", self.buckets, "an integer >= 1")
         require(self.features_per_bucket >= 1, "vo.features_per_bucket", self.features_per_bucket, "an integer >= 1")

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lcv_replay import se2
 from lcv_replay.errors import OdometryError
 
 KITTI_SEGMENT_LENGTHS_M = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
@@ -38,16 +39,6 @@ class DriftResult:
     segments: int
     lengths_m: tuple[float, ...]
     per_length: dict[float, tuple[float, float, int]]
-
-
-def _matrices(poses: np.ndarray) -> np.ndarray:
-    """``(N, 3, 3)`` homogeneous SE(2) matrices of ``(N, 3)`` poses."""
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    T = np.zeros((len(poses), 3, 3))
-    T[:, 0, 0], T[:, 0, 1], T[:, 0, 2] = c, -s, poses[:, 0]
-    T[:, 1, 0], T[:, 1, 1], T[:, 1, 2] = s, c, poses[:, 1]
-    T[:, 2, 2] = 1.0
-    return T
 
 
 def path_length_m(poses: np.ndarray) -> np.ndarray:
@@ -87,7 +78,7 @@ def kitti_drift(
         raise OdometryError("drift: the trajectories contain NaN or inf")
     distance = path_length_m(gt)
     lengths = tuple(lengths_m) if lengths_m is not None else segment_lengths_for(float(distance[-1]))
-    T_est, T_gt = _matrices(est), _matrices(gt)
+    T_est, T_gt = se2.matrices(est), se2.matrices(gt)
     inv = np.linalg.inv
     errors: dict[float, list[tuple[float, float]]] = {L: [] for L in lengths}
     for first in range(0, len(gt), step_frames):

@@ -69,6 +69,7 @@ def test_run_verification_row_has_the_keys_and_nulls_where_undefined(kitti06):
     assert row["recall"] == 0.0 and row["false_negatives"] == 45
     assert row["ate_rmse_m"] > 3.0  # odometry only (measured 3.56 m)
     assert row["gate_chi2"] is None  # no chi-square gate in the odometry-only method
+    assert row["ambiguous"] == 0 and row["ambiguous_true"] == 0  # no ambiguous verdict either
     json.dumps(row)
 
 

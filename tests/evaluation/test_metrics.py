@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from lcv_replay import se2
 from lcv_replay.errors import VerificationError
 from lcv_replay.evaluation.metrics import (
     absolute_trajectory_error,
@@ -17,7 +18,6 @@ from lcv_replay.evaluation.metrics import (
     detection_metrics,
     evaluate,
     f1_score,
-    transform_xy,
     window_metrics,
 )
 from lcv_replay.evaluation.truth import TruthSource, endpoint_distances_m, loop_truth
@@ -125,7 +125,7 @@ def test_alignment_recovers_a_known_rigid_transform_exactly(theta, tx, ty, seed)
     reference = _random_walk(50, seed)
     T = Pose2D(tx, ty, theta)
     # The estimate is the reference seen from another frame: estimate = T⁻¹ · reference.
-    estimate = transform_xy(T.inverse(), reference[:, :2])
+    estimate = se2.transform_points(T.inverse(), reference[:, :2])
     found = align_se2(estimate, reference[:, :2])
     assert math.isclose(math.remainder(found.yaw_rad - theta, 2 * math.pi), 0.0, abs_tol=1e-9)
     assert found.x_m == pytest.approx(tx, abs=1e-6)

@@ -7,6 +7,7 @@ import pytest
 
 from lcv_replay.errors import ConfigError
 from lcv_replay.log.reader import open_log
+from lcv_replay.records import FrameWindow
 from tests.log.helpers import PERIOD_NS, write_synthetic_log
 
 
@@ -33,6 +34,11 @@ def test_window_selects_frames_by_offset_and_duration(small_chunk_log):
             assert [c.pair for c in f.candidates] == [(f.index, f.index - 3)]
         assert list(reader.frames(start_offset_s=100.0)) == []
         assert [f.index for f in reader.frames(start_offset_s=3.85)] == [39]
+        # The window is computed once, by the reader, and the replay reads through it.
+        window = reader.window(0.9999, 0.5)
+        assert window == FrameWindow(10, 15) and window.frames == 5
+        assert [f.index for f in reader.frames(window=window)] == [f.index for f in frames]
+        assert reader.window() == FrameWindow(0, 40) and reader.window(100.0) == FrameWindow(40, 40)
 
 
 def test_chunks_outside_the_window_are_not_decoded(small_chunk_log):

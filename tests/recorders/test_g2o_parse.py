@@ -7,23 +7,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from lcv_replay.errors import RecorderError
 from lcv_replay.records import Pose2D
-from recorders.common import compose_chain, project_to_planar, read_pose_file, relative_steps
+from lcv_replay.se2 import information_matrix, relative_steps
+from recorders.common import project_to_planar, read_pose_file
 from recorders.g2o import (
     LOCAL_OUTLIER_SPAN,
     G2oOptions,
-    information_matrix,
     inject_outliers,
-    invert_measurement,
     load_g2o,
     load_ground_truth,
     load_true_loops,
     prepare_g2o,
-    se2_adjoint,
 )
 from tests.conftest import SHARED_DATA, shared_path
 
@@ -123,45 +119,6 @@ def test_robustslam_ground_truth_matches_kitti_poses_projected() -> None:
     assert steps_error[:, :2].max() < 0.2 and steps_error[:, 2].max() < 0.01
     end_error = np.hypot(*(planar[-1, :2] - chain.trajectory()[-1, :2]))
     assert end_error < 3.0  # after 3.7 km
-
-
-# ---------------------------------------------------------------------------------------------
-# SE(2) helpers
-# ---------------------------------------------------------------------------------------------
-
-poses = st.tuples(
-    st.floats(-50, 50), st.floats(-50, 50), st.floats(-math.pi, math.pi - 1e-9)
-).map(lambda t: Pose2D(*t))
-
-
-@settings(max_examples=50, deadline=None)
-@given(st.lists(poses, min_size=1, max_size=30))
-def test_compose_chain_matches_pose2d_and_inverts(steps: list[Pose2D]) -> None:
-    chain = compose_chain(np.array(steps))
-    expected = Pose2D(0.0, 0.0, 0.0)
-    for k, step in enumerate(steps):
-        expected = expected.compose(step)
-        assert chain[k + 1, :2] == pytest.approx(expected[:2], abs=1e-6)
-        assert math.cos(chain[k + 1, 2] - expected.yaw_rad) == pytest.approx(1.0)
-    back = relative_steps(chain)
-    assert np.allclose(back[:, :2], np.array(steps)[:, :2], atol=1e-6)
-    assert np.allclose(np.cos(back[:, 2] - np.array(steps)[:, 2]), 1.0)
-
-
-@settings(max_examples=30, deadline=None)
-@given(poses)
-def test_invert_measurement_matches_gtsam_adjoint(T: Pose2D) -> None:
-    gtsam = pytest.importorskip("gtsam")
-    assert np.allclose(se2_adjoint(T), gtsam.Pose2(*T).AdjointMap())
-    info = (554.2, -35.9, -388.4, 388.0, 525.4, 294517.3)
-    T_inv, info_inv = invert_measurement(T, info)
-    # Covariances transform as Σ' = Ad Σ Adᵀ.
-    cov = np.linalg.inv(information_matrix(info))
-    ad = gtsam.Pose2(*T).AdjointMap()
-    assert np.allclose(np.linalg.inv(information_matrix(info_inv)), ad @ cov @ ad.T, rtol=1e-6, atol=1e-12)
-    T_back, info_back = invert_measurement(T_inv, info_inv)
-    assert tuple(T_back)[:2] == pytest.approx(tuple(T)[:2], abs=1e-9)
-    assert np.allclose(info_back, info, rtol=1e-6, atol=1e-6)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lcv_replay.verification.pose_graph import se2_between, se2_compose
+from lcv_replay import se2
 
 
 # --------------------------------------------------------------------------------------- logs
@@ -31,11 +31,11 @@ class SquareRoute:
 
 
 def _compose(a, b):
-    return tuple(se2_compose(np.asarray(a, float), np.asarray(b, float)))
+    return tuple(se2.compose(np.asarray(a, float), np.asarray(b, float)))
 
 
 def _between(a, b):
-    return tuple(se2_between(np.asarray(a, float), np.asarray(b, float)))
+    return tuple(se2.between(np.asarray(a, float), np.asarray(b, float)))
 
 
 def square_route_g2o(

@@ -145,3 +145,14 @@ def test_sigint_mid_replay_finalises_the_recording_and_the_summary(square, tmp_p
     verify = subprocess.run(["rerun", "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=120)
     assert verify.returncode == 0, verify.stdout + verify.stderr
     assert not list(tmp_path.glob(".int.rrd.*"))
+
+
+def test_the_oracle_on_a_log_without_truth_is_refused_before_the_first_frame(square, tmp_path):
+    from recorders.g2o import G2oOptions, record_g2o
+
+    folder, _, config = square
+    log = tmp_path / "no_truth.mcap"
+    record_g2o(folder / "src" / "square.g2o", log, G2oOptions(auto_siblings=False), force=True)
+    code, out = _cli([str(log), "--method", "oracle", "-c", str(config), "--no-rerun", "--quiet"])
+    _assert_one_line_error(code, out, "no_truth.mcap", "method 'oracle' needs the log's true loops", "--true-loops")
+    assert "accepted" not in out  # refused up front: no summary

@@ -8,7 +8,8 @@ import pytest
 
 from lcv_replay.config import load_config
 from lcv_replay.errors import ConfigError
-from lcv_replay.replay import PACING_LAG_WARN_S, Pacer, ReplayOptions, parse_rate, replay
+from lcv_replay.pacing import PACING_LAG_WARN_S, Pacer, parse_rate
+from lcv_replay.replay import ReplayOptions, replay
 from lcv_replay.sinks.base import BaseSink
 from tests.replay.helpers import FAST_CONFIG_TOML, FakeClock, record_square_route, write_config
 
@@ -41,7 +42,7 @@ def test_pacer_max_rate_never_sleeps():
 def test_pacer_reports_when_it_cannot_keep_up(caplog):
     clock = FakeClock()
     pacer = Pacer(1.0, clock)
-    with caplog.at_level(logging.WARNING, logger="lcv_replay.replay"):
+    with caplog.at_level(logging.WARNING, logger="lcv_replay.pacing"):
         for k in range(40):
             pacer.wait(k * 100_000_000)
             clock.advance(0.2)  # work takes 2x the frame period

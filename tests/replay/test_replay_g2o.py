@@ -181,3 +181,14 @@ def test_stop_token_summarises_the_last_completed_window(square, tmp_path):
     classes = last_row(segs, "LineStrips2D:class_ids")
     assert sum(ConstraintState(c).accepted for c in classes) == summary.accepted
     assert math.isfinite(summary.wall_time_s)
+
+
+def test_the_oracle_replays_with_the_truth_that_judges_the_run(square, tmp_path):
+    """``--method oracle`` in a replay is given the log's labels (the NeedsTruth capability), as in
+    ``bench verify``: it accepts exactly the labelled true loops."""
+    summary, _, _ = _run(square["log"], tmp_path, "oracle", square["config"], method="oracle")
+    route = square["route"]
+    assert summary.method == "oracle" and summary.truth_source == "labels"
+    assert (summary.accepted, summary.true_positives, summary.false_positives, summary.false_negatives) == (
+        len(route.true_pairs), len(route.true_pairs), 0, 0)
+    assert summary.precision == summary.recall == 1.0

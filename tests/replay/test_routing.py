@@ -8,17 +8,9 @@ import numpy as np
 import pytest
 
 from lcv_replay.errors import ConfigError, ReplayError
-from lcv_replay.evaluation.truth import TruthSource
-from lcv_replay.records import Frame, LoopCandidate, Pose2D
-from lcv_replay.replay import (
-    DEFAULT_METHOD,
-    ReplayOptions,
-    choose_truth_source,
-    frame_range,
-    rebase_candidates,
-    rebase_frame,
-    resolve_constraint_source,
-)
+from lcv_replay.evaluation.truth import TruthSource, choose_truth_source
+from lcv_replay.records import Frame, FrameWindow, LoopCandidate, Pose2D
+from lcv_replay.replay import DEFAULT_METHOD, ReplayOptions, resolve_constraint_source
 from lcv_replay.verification.config import VerificationConfig
 
 LOG = Path("x.mcap")
@@ -60,21 +52,17 @@ def test_truth_source_rules():
     assert choose_truth_source("images", has_labels=False, has_ground_truth=False) is TruthSource.NONE
 
 
-def test_frame_range_matches_the_reader_window():
-    stamps = np.arange(100, dtype=np.int64) * 100_000_000 + 5
-    assert frame_range(stamps, 0.0, None) == (0, 100)
-    assert frame_range(stamps, 2.0, 3.0) == (20, 50)
-    assert frame_range(stamps, 2.05, None) == (21, 100)
-    assert frame_range(stamps, 20.0, None) == (100, 100)
-
-
 def test_rebase_keeps_only_candidates_inside_the_replay():
+    window = FrameWindow(100, 200)
     cands = [LoopCandidate(150, 120, 0.5), LoopCandidate(150, 80, 0.9), LoopCandidate(130, 100, 0.1)]
-    assert [c.pair for c in rebase_candidates(cands, 100)] == [(50, 20), (30, 0)]
+    assert [c.pair for c in window.candidates(cands)] == [(50, 20), (30, 0)]
+    assert window.pairs([(150, 120), (150, 50), (130, 100)]) == ((50, 20), (30, 0))
     frame = Frame(index=150, stamp_ns=7, odom=Pose2D(1, 2, 0), candidates=tuple(cands[:2]), true_loops=((150, 120), (150, 50)))
-    local = rebase_frame(frame, 100)
+    local = window.frame(frame)
     assert local.index == 50 and [c.pair for c in local.candidates] == [(50, 20)] and local.true_loops == ((50, 20),)
-    assert rebase_frame(frame, 0) is frame
+    assert FrameWindow(0, 200).frame(frame) is frame
+    np.testing.assert_array_equal(window.rows(np.arange(300)), np.arange(100, 200))
+    assert window.frames == 100 and FrameWindow(5, 5).frames == 0
 
 
 def test_options_resolve_method_and_seed():

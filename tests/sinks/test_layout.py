@@ -22,7 +22,7 @@ from lcv_replay.sinks.layout import (
     segments,
 )
 from lcv_replay.verification.base import Constraint, HypothesisSummary
-from lcv_replay.verification.pose_graph import se2_compose
+from lcv_replay import se2
 
 
 def test_constraint_states_cover_every_combination():
@@ -50,7 +50,7 @@ def _odometry(n: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     poses = [np.zeros(3)]
     for _ in range(n - 1):
-        poses.append(se2_compose(poses[-1], np.array([1.0, rng.normal(0, 0.1), rng.normal(0, 0.1)])))
+        poses.append(se2.compose(poses[-1], np.array([1.0, rng.normal(0, 0.1), rng.normal(0, 0.1)])))
     return np.array(poses)
 
 
@@ -87,7 +87,7 @@ def test_map_estimate_grows_past_its_initial_capacity():
 @given(st.floats(-50, 50), st.floats(-50, 50), st.floats(-math.pi, math.pi))
 def test_anchor_to_first_moves_the_first_pose_and_keeps_shape(x, y, yaw):
     reference = _odometry(15, seed=3)
-    reference = se2_compose(np.array([10.0, -4.0, 0.7]), reference)
+    reference = se2.compose(np.array([10.0, -4.0, 0.7]), reference)
     anchored = anchor_to_first(reference, np.array([x, y, yaw]))
     np.testing.assert_allclose(anchored[0, :2], [x, y], atol=1e-9)
     assert math.isclose(math.remainder(anchored[0, 2] - yaw, 2 * math.pi), 0.0, abs_tol=1e-9)
@@ -124,7 +124,7 @@ def test_markdown_tables_name_ranks_and_constraints():
 
 @pytest.mark.parametrize("bits", [1, 20, 64])
 def test_code_bits_msb_first(bits):
-    from lcv_replay.replay import code_bits_msb_first
+    from lcv_replay.retrieval.stage import code_bits_msb_first
 
     code = (1 << (bits - 1)) | 1
     out = code_bits_msb_first(code, bits)
@@ -137,7 +137,7 @@ def test_position_of_matches_positions_of():
     for pose in odom[:25]:
         est.add_odometry(pose)
     assert est.position_of(7) == pytest.approx(tuple(odom[7, :2]))
-    best = se2_compose(np.array([3.0, -2.0, 0.4]), odom[:25])
+    best = se2.compose(np.array([3.0, -2.0, 0.4]), odom[:25])
     est.set_best(best)
     for pose in odom[25:]:
         est.add_odometry(pose)

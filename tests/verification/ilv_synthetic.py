@@ -13,7 +13,7 @@ import numpy as np
 
 from lcv_replay.records import LoopCandidate
 from lcv_replay.verification.base import Constraint
-from lcv_replay.verification.pose_graph import se2_between, se2_compose
+from lcv_replay import se2
 
 ODOM_INFORMATION = np.diag([400.0, 400.0, 40000.0])  # sigma 5 cm, 5 cm, 0.005 rad per step
 
@@ -53,12 +53,12 @@ def circle_world(
     angle = 2.0 * np.pi * np.arange(n) / frames_per_lap
     truth = np.stack([radius_m * np.sin(angle), radius_m * (1.0 - np.cos(angle)), angle], axis=1)
     truth[:, 2] = (truth[:, 2] + np.pi) % (2 * np.pi) - np.pi
-    steps = se2_between(truth[:-1], truth[1:])
+    steps = se2.between(truth[:-1], truth[1:])
     steps[:, 2] += yaw_bias_rad
     steps[:, :2] += rng.normal(0.0, 0.02, size=(n - 1, 2))
     odom = np.zeros((n, 3))
     for k, step in enumerate(steps):
-        odom[k + 1] = se2_compose(odom[k], step)
+        odom[k + 1] = se2.compose(odom[k], step)
     true_c = tuple(
         LoopCandidate(q, q - frames_per_lap, similarity=0.9, source="synthetic")
         for q in range(frames_per_lap + 5, n, true_every)

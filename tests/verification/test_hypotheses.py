@@ -13,7 +13,7 @@ from lcv_replay.verification.hypotheses import (
     rank_order,
     selectable_constraints,
 )
-from lcv_replay.verification.pose_graph import OdometryChain, extend_by_odometry
+from lcv_replay.verification.measurements import OdometryChain, extend_by_odometry
 from tests.verification.ilv_synthetic import ODOM_INFORMATION, circle_world
 
 

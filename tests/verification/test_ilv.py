@@ -10,7 +10,7 @@ import pytest
 from lcv_replay.records import LoopCandidate, Pose2D
 from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.hypotheses import Hypothesis
-from lcv_replay.verification.pose_graph import se2_between
+from lcv_replay import se2
 from lcv_replay.verification.registry import available_methods, make_verifier
 from tests.conftest import shared_path
 from tests.verification.ilv_synthetic import ODOM_INFORMATION, circle_world
@@ -22,7 +22,7 @@ MEASURED_INFORMATION = (100.0, 0.0, 0.0, 100.0, 0.0, 10000.0)
 
 def _measured(world, query: int, match: int) -> LoopCandidate:
     """A candidate carrying the true relative pose, as robustslam_kitti's true loops do."""
-    rel = se2_between(world.truth[match], world.truth[query])
+    rel = se2.between(world.truth[match], world.truth[query])
     return LoopCandidate(query, match, T_match_query=Pose2D(*rel), information=MEASURED_INFORMATION, source="synthetic")
 
 

@@ -11,7 +11,7 @@ from lcv_replay.errors import VerificationError
 from lcv_replay.records import LoopCandidate, Pose2D
 from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.noise_scale import MAX_DOF, calibrated_gate, fit_noise
-from lcv_replay.verification.pose_graph import se2_between
+from lcv_replay import se2
 from lcv_replay.verification.registry import make_verifier
 from tests.conftest import shared_path
 from tests.verification.ilv_synthetic import circle_world
@@ -72,7 +72,7 @@ def _loose_world():
     n = len(world.odom)
 
     def measured(query: int, match: int) -> LoopCandidate:
-        rel = se2_between(world.truth[match], world.truth[query])
+        rel = se2.between(world.truth[match], world.truth[query])
         return LoopCandidate(query, match, T_match_query=Pose2D(*rel), information=LOOP_INFORMATION)
 
     true = tuple(measured(q, q - world.frames_per_lap) for q in range(world.frames_per_lap + 5, n - 60, 5))

@@ -1,47 +1,19 @@
-"""pose_graph: SE(2) maths against gtsam.Pose2, chi-square against GTSAM, LM and GNC-TLS solves."""
+"""pose_graph and measurements: numpy chi-square against GTSAM, the odometry chain, LM and GNC-TLS solves."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from lcv_replay.errors import VerificationError
 from lcv_replay.records import LoopCandidate, Pose2D
+from lcv_replay import se2
+from lcv_replay.verification import measurements as ms
 from lcv_replay.verification import pose_graph as pg
 from lcv_replay.verification.base import Constraint
 from tests.verification.ilv_synthetic import ODOM_INFORMATION, as_constraints, circle_world
 
 gtsam = pytest.importorskip("gtsam")
-
-pose = st.tuples(
-    st.floats(-100, 100), st.floats(-100, 100), st.floats(-np.pi + 1e-9, np.pi - 1e-9)
-)
-
-
-@settings(max_examples=60, deadline=None)
-@given(pose, pose, pose)
-def test_se2_ops_match_gtsam(a, b, z):
-    pa, pb, pz = gtsam.Pose2(*a), gtsam.Pose2(*b), gtsam.Pose2(*z)
-    comp = pa.compose(pb)
-    np.testing.assert_allclose(pg.se2_compose(np.array(a), np.array(b)), [comp.x(), comp.y(), comp.theta()], atol=1e-9)
-    betw = pa.between(pb)
-    got = pg.se2_between(np.array(a), np.array(b))
-    np.testing.assert_allclose(got[:2], [betw.x(), betw.y()], atol=1e-9)
-    assert abs(pg.wrap_angles(got[2] - betw.theta())) < 1e-9
-    err = pz.inverse().compose(betw)
-    # GTSAM's closed form loses digits for |theta| < ~1e-4 (cancellation); ours switches to a series.
-    tol = 1e-7 if abs(err.theta()) > 1e-4 else 1e-4
-    np.testing.assert_allclose(pg.se2_logmap(np.array([err.x(), err.y(), err.theta()])), gtsam.Pose2.Logmap(err), atol=tol)
-
-
-def test_compose_with_inverse_is_identity():
-    rng = np.random.default_rng(3)
-    a = np.column_stack([rng.normal(0, 50, 100), rng.normal(0, 50, 100), rng.uniform(-np.pi, np.pi, 100)])
-    np.testing.assert_allclose(pg.se2_between(a, a), 0.0, atol=1e-9)
-    b = np.column_stack([rng.normal(0, 50, 100), rng.normal(0, 50, 100), rng.uniform(-np.pi, np.pi, 100)])
-    np.testing.assert_allclose(pg.se2_compose(a, pg.se2_between(a, b))[:, :2], b[:, :2], atol=1e-9)
 
 
 def test_numpy_chi2_equals_gtsam_factor_error():
@@ -52,49 +24,49 @@ def test_numpy_chi2_equals_gtsam_factor_error():
     assert graph.size() == n + len(cons)
     poses = world.truth  # any poses other than the odometry give non-zero residuals
     values = pg.initial_values(poses)
-    odo = pg.odometry_chi2(poses, world.odom, ODOM_INFORMATION)
+    odo = ms.odometry_chi2(poses, world.odom, ODOM_INFORMATION)
     np.testing.assert_allclose(odo, [2 * graph.at(k + 1).error(values) for k in range(n - 1)], rtol=1e-9, atol=1e-12)
     for pos, c in enumerate(cons):
         expected = 2 * graph.at(pg.loop_factor_index(n, pos)).error(values)
-        assert pg.loop_chi2(poses, c, ODOM_INFORMATION) == pytest.approx(expected, rel=1e-9)
+        assert ms.loop_chi2(poses, c, ODOM_INFORMATION) == pytest.approx(expected, rel=1e-9)
 
 
 def test_odometry_between_and_extend_by_odometry_chain_the_steps():
     world = circle_world(frames_per_lap=50, laps=1.0)
-    steps = pg.odometry_between(world.odom)
+    steps = ms.odometry_between(world.odom)
     assert steps.shape == (49, 3)
     start = np.array([[5.0, -2.0, 0.7]])
-    extended = pg.extend_by_odometry(start, world.odom)
+    extended = ms.extend_by_odometry(start, world.odom)
     chained = [start[0]]
     for step in steps:
-        chained.append(pg.se2_compose(chained[-1], step))
+        chained.append(se2.compose(chained[-1], step))
     np.testing.assert_allclose(extended, np.array(chained), atol=1e-9)
-    partial = pg.extend_by_odometry(world.truth[:20], world.odom)
+    partial = ms.extend_by_odometry(world.truth[:20], world.odom)
     np.testing.assert_array_equal(partial[:20], world.truth[:20])
     with pytest.raises(VerificationError):
-        pg.extend_by_odometry(world.truth, world.odom[:10])
+        ms.extend_by_odometry(world.truth, world.odom[:10])
 
 
 def test_singular_information_names_the_constraint():
     bad = Constraint(7, LoopCandidate(30, 4, information=(1.0, 0.0, 0.0, 0.0, 0.0, 1.0)), 30)
     with pytest.raises(VerificationError, match=r"loop constraint 7 \(query 30, match 4\).*singular"):
-        pg.loop_measurement(bad, ODOM_INFORMATION)
+        ms.loop_measurement(bad, ODOM_INFORMATION)
     world = circle_world(frames_per_lap=40, laps=1.0)
     with pytest.raises(VerificationError, match="loop constraint 7"):
         pg.build_graph(world.odom, ODOM_INFORMATION, [bad], loop_default_information=ODOM_INFORMATION)
     with pytest.raises(VerificationError, match="odometry"):
         pg.information_to_noise(np.zeros((3, 3)), what="odometry")
     with pytest.raises(VerificationError, match="shape"):
-        pg.as_information_matrix(np.eye(2), what="x")
+        ms.as_information_matrix(np.eye(2), what="x")
 
 
 def test_identity_measurement_and_default_information_for_bare_candidates():
     c = Constraint(0, LoopCandidate(9, 2), 9)
-    z, info = pg.loop_measurement(c, ODOM_INFORMATION)
+    z, info = ms.loop_measurement(c, ODOM_INFORMATION)
     assert z == Pose2D(0.0, 0.0, 0.0)
     np.testing.assert_array_equal(info, ODOM_INFORMATION)
     c2 = Constraint(1, LoopCandidate(9, 2, T_match_query=Pose2D(1.0, 0.0, 0.1), information=(2, 0, 0, 3, 0, 4)), 9)
-    z2, info2 = pg.loop_measurement(c2, ODOM_INFORMATION)
+    z2, info2 = ms.loop_measurement(c2, ODOM_INFORMATION)
     assert z2 == Pose2D(1.0, 0.0, 0.1)
     np.testing.assert_array_equal(np.diag(info2), [2, 3, 4])
 
@@ -163,21 +135,9 @@ def test_optimiser_failure_is_reported_not_returned():
         pg.optimise_lm(graph, unknown)  # key 31 has no initial value
 
 
-def test_expmap_and_adjoint_match_gtsam():
-    rng = np.random.default_rng(5)
-    for _ in range(20):
-        xi = rng.normal(size=3) * [3.0, 3.0, 1.0]
-        T = rng.normal(size=3) * [30.0, 30.0, 1.0]
-        e = gtsam.Pose2.Expmap(xi)
-        np.testing.assert_allclose(pg.se2_expmap(xi), [e.x(), e.y(), e.theta()], atol=1e-9)
-        np.testing.assert_allclose(pg.se2_adjoint(T), gtsam.Pose2(*T).AdjointMap(), atol=1e-12)
-        np.testing.assert_allclose(pg.se2_adjoint_inverse(T) @ pg.se2_adjoint(T), np.eye(3), atol=1e-9)
-        np.testing.assert_allclose(pg.se2_logmap(pg.se2_expmap(xi)), xi, atol=1e-9)
-
-
 def test_chain_segment_covariance_equals_gtsam_marginals():
     world = circle_world(frames_per_lap=60, laps=1.0)
-    chain = pg.OdometryChain(ODOM_INFORMATION)
+    chain = ms.OdometryChain(ODOM_INFORMATION)
     chain.extend(world.odom[:25])  # grows in pieces like a replay
     chain.extend(world.odom[25:])
     graph = pg.build_graph(world.odom, ODOM_INFORMATION, [], loop_default_information=ODOM_INFORMATION)
@@ -193,7 +153,7 @@ def test_reduced_graph_and_bridge_match_the_full_graph():
     world = circle_world(num_false=0)
     cons = as_constraints(world.true_candidates)
     full = pg.optimise_lm(pg.build_graph(world.odom, ODOM_INFORMATION, cons, loop_default_information=ODOM_INFORMATION), world.odom)
-    chain = pg.OdometryChain(ODOM_INFORMATION)
+    chain = ms.OdometryChain(ODOM_INFORMATION)
     chain.extend(world.odom)
     loops = [pg.loop_factor(c, ODOM_INFORMATION) for c in cons]
     nodes = np.unique(np.concatenate([[0], [c.match_frame for c in cons], [c.query_frame for c in cons]]))
