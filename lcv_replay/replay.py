@@ -35,6 +35,7 @@ import numpy as np
 from lcv_replay.config import ReplayConfig, to_dict
 from lcv_replay.errors import ConfigError, ReplayError
 from lcv_replay.evaluation.metrics import ate_rmse_m, detection_metrics, top_trajectory
+from lcv_replay.evaluation.revisits import RevisitRecall, revisit_recall
 from lcv_replay.evaluation.truth import ConstraintTruth, choose_truth_source, provide_truth
 from lcv_replay.pacing import Clock, Pacer, PacingReport, SystemClock
 from lcv_replay.records import Frame, FrameWindow, LoopCandidate
@@ -418,6 +419,7 @@ class _Run:
         accepted_ids = tuple(sorted(self.last_step.accepted_constraint_ids)) if self.last_step else ()
         d = metrics.detection
         duration = 0.0 if self.first_stamp is None else (self.last_stamp - self.first_stamp) / 1e9
+        revisits = self._revisits(accepted_ids)
         return RunSummary(  # the stable keys (docs/summary-json.md), then the context
             frames=self.frames, wall_time_s=wall_time_s, log_duration_s=duration, method=start.method,
             constraints=len(self.constraints), accepted=d.accepted, true_positives=d.true_positives,
@@ -426,4 +428,22 @@ class _Run:
             log=str(start.log_path), constraint_source=start.constraint_source, truth_source=self.truth.source.value,
             seed=start.seed, rate_requested=start.rate, setup_time_s=setup_time_s, interrupted=interrupted,
             accepted_constraint_ids=accepted_ids, rrd=None if rrd is None else str(rrd), config=dict(start.config),
+            revisits=None if revisits is None else revisits.revisits,
+            revisits_proposed=None if revisits is None else revisits.proposed,
+            revisits_closed=None if revisits is None else revisits.closed,
+            revisit_recall=None if revisits is None else revisits.recall,
+        )
+
+    def _revisits(self, accepted_ids: Sequence[int]) -> RevisitRecall | None:
+        """Recall against every ground-truth revisit of the frames replayed (None without ground truth)."""
+        if self.ground_truth is None or self.frames == 0:
+            return None
+        config = self.setup.config
+        return revisit_recall(
+            np.asarray(self.ground_truth)[: self.frames, :2],
+            [c.query_frame for c in self.constraints],
+            self.truth.flags[: len(self.constraints)],
+            accepted_ids,
+            radius_m=config.verification.consistency_radius_m,
+            exclusion_frames=config.retrieval.exclusion_frames,
         )

@@ -29,7 +29,7 @@ def bench_retrieval(
     mode: Optional[list[str]] = typer.Option(None, "--mode", help="Retrieval mode: ranked (the default) or paper; repeat to compare both in one run."),
     top_k: Optional[int] = typer.Option(None, "--top-k", help="N_r, candidates per query (default 10)."),
     hamming_threshold: Optional[int] = typer.Option(None, "--hamming-threshold", help="T_b of mode paper (default 3)."),
-    code_bits: Optional[int] = typer.Option(None, "--code-bits", help="Code length of the mode(s) run: N_b of paper (default 20), ranked.code_bits (default 64)."),
+    code_bits: Optional[int] = typer.Option(None, "--code-bits", help="Code length of the mode(s) run: N_b of paper (default 20), ranked.code_bits (default 128)."),
     candidates: Optional[int] = typer.Option(None, "--candidates", help="M of mode ranked: Hamming-nearest frames re-ranked (default 100)."),
     pooling: Optional[str] = typer.Option(None, "--pooling", help="efficientnet-lite0 pooling: avg, gem or multi (default multi)."),
     seed: Optional[int] = typer.Option(None, "--seed", help="ITQ seed (default 0)."),

@@ -29,7 +29,7 @@ class RankedConfig:
     go to the L2 re-rank; the best ``N_r`` of them are the loop candidates.
     """
 
-    code_bits: int = 64  # code length: ITQ on the top 64 PCA axes (a multiple of 8, at most pca_dims)
+    code_bits: int = 128  # code length: ITQ on all 128 PCA axes (a multiple of 8, at most pca_dims)
     candidates: int = 100  # M: Hamming-nearest eligible frames passed to the L2 re-rank (>= N_r)
     index: Literal["auto", "faiss", "numpy"] = "auto"  # exact Hamming k-NN: faiss IndexBinaryFlat, or a numpy scan; auto = faiss when installed
 

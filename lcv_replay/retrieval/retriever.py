@@ -20,7 +20,7 @@ the code is shortened, to a multiple of 8 bits, when the fitting frames span few
 
 The mode (``retrieval.mode``) picks the index (:mod:`lcv_replay.retrieval.index`):
 
-* ``"ranked"`` (default): 64-bit codes, the ``M = 100`` Hamming-nearest eligible frames, top ``N_r``
+* ``"ranked"`` (default): 128-bit codes, the ``M = 100`` Hamming-nearest eligible frames, top ``N_r``
   by L2 (:class:`~lcv_replay.retrieval.index.RankedIndex`);
 * ``"paper"``: 20-bit codes, frames within Hamming ``T_b = 3``, top ``N_r`` by L2
   (:class:`~lcv_replay.retrieval.index.CodeIndex`), bit-identical to the pipeline before modes.

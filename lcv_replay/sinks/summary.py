@@ -37,6 +37,11 @@ def format_summary(summary: RunSummary) -> str:
             f"({summary.true_positives} true / {summary.false_positives} false accepted; truth from {summary.truth_source})"
         )
         lines.append(f"  recall            {num(summary.recall, '.3f')} ({summary.false_negatives} true loops missed)")
+        if summary.revisits is not None:
+            lines.append(
+                f"  revisit recall    {num(summary.revisit_recall, '.3f')} ({summary.revisits_closed} of {summary.revisits} revisits closed, "
+                f"{summary.revisits_proposed} proposed: frames within T_p of a frame more than Δt earlier, by ground truth)"
+            )
     else:
         lines.append("  precision/recall  n/a (the log has neither loop labels nor ground truth)")
     lines.append(

@@ -95,6 +95,10 @@ def test_image_route_logs_camera_and_retrieval(demo_cache, tmp_path):
     assert len(last_row(lines, "LineStrips2D:strips")) == len(last_row(lines, "match_frame")) == len(row)
     data = json.loads(js.read_text())
     assert data["constraints"] == summary.constraints and data["constraint_source"] == "images"
+    # recall both ways: against the candidates proposed, and against every ground-truth revisit
+    # (this short drive does not come back to a place more than Δt frames later: no revisit to close)
+    assert data["revisits"] == data["revisits_proposed"] == data["revisits_closed"] == 0 and data["revisit_recall"] is None
+    assert summary.revisits == 0
 
 
 def test_demo_command_replays_the_cached_recording(demo_cache, tmp_path):
@@ -106,6 +110,7 @@ def test_demo_command_replays_the_cached_recording(demo_cache, tmp_path):
     assert result.exit_code == 0, result.output
     assert log.stat().st_mtime_ns == before
     assert f"rerun {rrd}" in result.output and "lcv-replay summary" in result.output
+    assert "revisit recall" in result.output  # recall both ways in the demo's summary
     data = json.loads(js.read_text())
     assert data["frames"] == FRAMES and data["constraint_source"] == "images" and data["log"] == str(log)
     assert data["config"]["retrieval"]["backend"] == "efficientnet-lite0"  # the defaults

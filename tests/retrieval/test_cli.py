@@ -111,7 +111,7 @@ def test_index_bench_reports_each_size_and_variant(tmp_path):
         (100, "paper/scan"), (100, "ranked/numpy"), (100, "ranked/faiss"), (1000, "paper/scan"), (1000, "ranked/numpy"), (1000, "ranked/faiss")]
     for r in rows:
         if r["mode"] == "ranked":  # exact engines: the full budget M = 100 (all 100 frames at the small size), recall 1
-            assert r["recall_vs_exact"] == 1.0 and r["mean_prefilter_size"] == 100 and r["code_bits"] == 64
+            assert r["recall_vs_exact"] == 1.0 and r["mean_prefilter_size"] == 100 and r["code_bits"] == 128
         else:
             assert r["recall_vs_exact"] is None and r["code_bits"] == 20
         assert r["query_us_median"] >= r["first_stage_us_median"] > 0

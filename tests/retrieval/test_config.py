@@ -44,7 +44,7 @@ def test_bad_retrieval_values_are_refused(tmp_path, line, message):
 def test_modes_load_and_direct_construction_is_checked_too():
     from lcv_replay.retrieval.config import RetrievalConfig
 
-    assert RetrievalConfig().mode == "ranked" and RetrievalConfig().active_code_bits == 64
+    assert RetrievalConfig().mode == "ranked" and RetrievalConfig().active_code_bits == 128
     assert RetrievalConfig(mode="paper").active_code_bits == 20
     assert RetrievalConfig(mode="paper").resolved_engine == "torch" and RetrievalConfig().resolved_engine == "onnxruntime"
     # the ranked section is only checked where it is used: a paper config may keep a small PCA

@@ -27,19 +27,23 @@ def _popcount(x: int) -> int:
     return bin(x).count("1")
 
 
+def sq_l2(vectors, vector):
+    """Squared L2 distances in the index's float32 arithmetic (``|x|^2 + |q|^2 - 2 x.q``, row by row)."""
+    norms = np.array([v @ v for v in vectors], dtype=np.float32)
+    return np.maximum(norms + np.float32(vector @ vector) - 2.0 * (vectors @ vector), 0.0)
+
+
 def brute_force(frames, codes, vectors, code, vector, *, max_frame, candidates, top_k):
     """The reference: Hamming top-M by (distance, frame), then L2 top-k by (distance, frame)."""
     eligible = [i for i, f in enumerate(frames) if f <= max_frame]
     budget = sorted(eligible, key=lambda i: (_popcount(int(codes[i]) ^ code), frames[i]))[:candidates]
-    diff = vectors[budget] - vector
-    d2 = np.einsum("ij,ij->i", diff, diff)  # the same float32 arithmetic as the index
+    d2 = sq_l2(vectors[budget], vector)
     order = sorted(range(len(budget)), key=lambda k: (d2[k], frames[budget[k]]))[:top_k]
     return [frames[budget[k]] for k in order], set(frames[i] for i in budget), eligible
 
 
 def l2_top(frames, vectors, vector, eligible, top_k):
-    diff = vectors[eligible] - vector
-    d2 = np.einsum("ij,ij->i", diff, diff)
+    d2 = sq_l2(vectors[eligible], vector)
     return [frames[eligible[k]] for k in sorted(range(len(eligible)), key=lambda k: (d2[k], frames[eligible[k]]))[:top_k]]
 
 
