@@ -370,16 +370,18 @@ def hamming_nearest(codes: np.ndarray, query: np.ndarray, count: int) -> tuple[n
     Returns:
         ``(rows, distances)``: ``(min(N, count),)`` int64 rows, sorted, and their int64 distances.
     """
-    distances = np.bitwise_count(codes ^ query).sum(axis=1, dtype=np.int64) if codes.shape[0] else np.zeros(0, np.int64)
+    distances = np.zeros(codes.shape[0], dtype=np.uint8)  # <= 255 bits: one byte per distance
+    for word in range(codes.shape[1]):  # per word: a contiguous-enough 1-D popcount, no 2-D reduction
+        distances += np.bitwise_count(codes[:, word] ^ query[word])
     if distances.size <= count:
-        return np.arange(distances.size, dtype=np.int64), distances
+        return np.arange(distances.size, dtype=np.int64), distances.astype(np.int64)
     cumulative = np.cumsum(np.bincount(distances))
     radius = int(np.searchsorted(cumulative, count))  # smallest radius holding `count` rows
     inside = distances < radius
     ties = np.flatnonzero(distances == radius)[: count - (int(cumulative[radius - 1]) if radius else 0)]
     inside[ties] = True
     rows = np.flatnonzero(inside)
-    return rows, distances[rows]
+    return rows, distances[rows].astype(np.int64)
 
 
 _FAISS_AVAILABLE: bool | None = None
