@@ -39,8 +39,8 @@ def format_summary(summary: RunSummary) -> str:
         lines.append(f"  recall            {num(summary.recall, '.3f')} ({summary.false_negatives} true loops missed)")
         if summary.revisits is not None:
             lines.append(
-                f"  revisit recall    {num(summary.revisit_recall, '.3f')} ({summary.revisits_closed} of {summary.revisits} revisits closed, "
-                f"{summary.revisits_proposed} proposed: frames within T_p of a frame more than Δt earlier, by ground truth)"
+                f"  revisit recall    {num(summary.revisit_recall, '.3f')} (closed {summary.revisits_closed} of the "
+                f"{summary.revisits} revisits in the ground truth; {summary.revisits_proposed} were proposed)"
             )
     else:
         lines.append("  precision/recall  n/a (the log has neither loop labels nor ground truth)")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from lcv_replay.cli import app
@@ -118,3 +119,16 @@ def test_index_bench_reports_each_size_and_variant(tmp_path):
     assert rows[0]["query_vs_smallest"] == 1.0
     bad = runner.invoke(app, ["bench", "retrieval-index", "--variant", "ranked/annoy"])
     assert bad.exit_code == 2 and "unknown variant 'ranked/annoy'" in bad.output
+
+
+@pytest.mark.slow
+def test_descriptor_speed_json_names_the_onnxruntime_rung_and_the_default_engine(tmp_path):
+    out = tmp_path / "speed.json"
+    result = runner.invoke(app, ["bench", "descriptor-speed", "--variant", "onnxruntime", "--variant", "matmul-bound",
+                                 "--repeats", "1", "--runs", "2", "--batch", "2", "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    rows = {r["variant"]: r for r in json.loads(out.read_text())["variants"]}
+    assert rows["onnxruntime"]["default"] is True and rows["matmul-bound"]["default"] is False
+    assert rows["onnxruntime"]["ms_per_image_median"] > 0 and rows["matmul-bound"]["ms_per_image_median"] > 0
+    assert rows["onnxruntime"]["cosine_min"] >= 0.99999  # against the torch export module, same input
+    assert rows["matmul-bound"]["gflops_median"] > 0 and rows["matmul-bound"]["cosine_min"] is None
