@@ -82,6 +82,10 @@ class ReplayError(LcvError):
     """The replay cannot start (no odometry, neither images nor candidates, ...)."""
 
 
+class FleetError(LcvError):
+    """A batch or compare cannot start (no logs matched, a bad run folder, an unreachable cluster, ...)."""
+
+
 class NotImplementedYetError(LcvError):
     """A documented feature is not implemented yet."""
 

@@ -69,6 +69,10 @@ class ReplayOptions:
         start_offset_s, duration_s: the time range to replay (``None`` duration: to the end).
         seed: overrides the retrieval and verification seeds when given.
         recover: read a truncated log's complete chunks.
+        open_reader: how to open the log, ``open_reader(path, recover=...)``; ``None`` is
+            :func:`lcv_replay.log.reader.open_log`. A reader mode such as the follower of a log
+            still being written (:func:`lcv_replay.log.follow.follow_log`) plugs in here; the
+            replay cannot tell the difference.
     """
 
     log_path: Path
@@ -80,6 +84,7 @@ class ReplayOptions:
     duration_s: float | None = None
     seed: int | None = None
     recover: bool = False
+    open_reader: Any = None
 
     def __post_init__(self) -> None:
         if self.rate is not None:
@@ -155,8 +160,9 @@ class StopToken:
 
 
 @contextlib.contextmanager
-def sigint_requests_stop(token: StopToken) -> Iterator[None]:
-    """While active, the first SIGINT sets ``token``; a second one raises ``KeyboardInterrupt``.
+def sigint_requests_stop(token: StopToken, *, what: str = "stopping after this frame and finalising the outputs") -> Iterator[None]:
+    """While active, the first SIGINT sets ``token`` (and logs ``what`` happens now); a second one
+    raises ``KeyboardInterrupt``.
 
     Only possible in the main thread; elsewhere this does nothing (the caller's token still works).
     """
@@ -168,7 +174,7 @@ def sigint_requests_stop(token: StopToken) -> Iterator[None]:
         if token.requested:
             raise KeyboardInterrupt
         token.request()
-        logger.warning("Ctrl-C: stopping after this frame and finalising the outputs (Ctrl-C again to hurry)")
+        logger.warning("Ctrl-C: %s (Ctrl-C again to hurry)", what)
 
     previous = signal.signal(signal.SIGINT, handler)
     try:
@@ -209,7 +215,7 @@ def _prepare(options: ReplayOptions) -> _Setup:
     from lcv_replay.verification.registry import make_verifier
 
     path = Path(options.log_path)
-    reader = open_log(path, recover=options.recover)
+    reader = (options.open_reader or open_log)(path, recover=options.recover)
     info = reader.info
     if not info.has_odometry:
         raise ReplayError(
@@ -230,14 +236,22 @@ def _prepare(options: ReplayOptions) -> _Setup:
             fix="choose --start-offset/--duration inside the log",
         )
     verifier = make_verifier(config.verification.method, config.verification, odometry_information=info.odometry_information)
-    retrieval = RetrievalStage(config.retrieval, path) if source in ("images", "both") else None
+    if info.growing and config.retrieval.fit == "whole-log":
+        raise ReplayError(
+            "retrieval.fit = 'whole-log' needs the whole log before the first frame, but the log is still being written",
+            path=path,
+            fix="use retrieval.fit = 'online' (the paper's) to follow a log",
+        )
+    # A file still being written has no content hash yet: no descriptor cache.
+    retrieval = RetrievalStage(config.retrieval, path, cache=not info.growing) if source in ("images", "both") else None
 
     ground_truth = window.rows(reader.ground_truth()) if info.has_ground_truth else None
     if ground_truth is not None and not np.any(np.isfinite(ground_truth[:, 0])):
         ground_truth = None
-    true_pairs = window.pairs(reader.true_loops()) if info.has_labels else None
     truth_source = choose_truth_source(source, has_labels=info.has_labels, has_ground_truth=ground_truth is not None)
-    truth = ConstraintTruth(truth_source, true_pairs, ground_truth, config.verification.consistency_radius_m)
+    # Labels and ground truth reach the truth with their frames (_Run.frame): a log still being
+    # written is judged like a finished one.
+    truth = ConstraintTruth(truth_source, None, None, config.verification.consistency_radius_m)
     provide_truth(verifier, truth, method=config.verification.method, path=path)  # the oracle, or refused here
     stamps = window.rows(reader.frame_stamps_ns)
     start = RunStart(
@@ -311,6 +325,8 @@ def _drive(pairs: Iterable[tuple[Frame, np.ndarray | None]], run: _Run, pacer: P
             run.frame(frame, descriptor)
             if stop.requested:
                 return True, pacer.report()
+        if stop.requested:  # the frames ended because of the stop (a follower waiting for data)
+            return True, pacer.report()
         pacing = pacer.report()
         run.finish()
         return False, pacing
@@ -325,7 +341,6 @@ class _Run:
         self.setup = setup
         self.verifier: Verifier = setup.verifier
         self.truth = setup.truth
-        self.ground_truth = setup.start.ground_truth
         self.sinks = sinks
         self.clock = clock
         self.loop_started = clock.now()
@@ -347,6 +362,7 @@ class _Run:
         if self.first_stamp is None:
             self.first_stamp = local.stamp_ns
         self.last_stamp = local.stamp_ns
+        self.truth.observe(local)
         self.verifier.add_frame(local.index, local.odom)
         candidates: list[LoopCandidate] = []
         retrieval_update = None
@@ -389,7 +405,7 @@ class _Run:
             frame_index=frame_index,
             constraints=arrived,
             detection=detection_metrics(accepted_ids, self.truth.as_loop_truth(arrived)),
-            ate_rmse_m=ate_rmse_m(trajectory, self.ground_truth),
+            ate_rmse_m=ate_rmse_m(trajectory, self.truth.ground_truth),
             hypotheses=len(ranking) if ranking else None,
         )
 
@@ -436,11 +452,11 @@ class _Run:
 
     def _revisits(self, accepted_ids: Sequence[int]) -> RevisitRecall | None:
         """Recall against every ground-truth revisit of the frames replayed (None without ground truth)."""
-        if self.ground_truth is None or self.frames == 0:
+        if self.truth.ground_truth is None or self.frames == 0:
             return None
         config = self.setup.config
         return revisit_recall(
-            np.asarray(self.ground_truth)[: self.frames, :2],
+            np.asarray(self.truth.ground_truth)[: self.frames, :2],
             [c.query_frame for c in self.constraints],
             self.truth.flags[: len(self.constraints)],
             accepted_ids,

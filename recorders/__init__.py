@@ -18,10 +18,10 @@ from lcv_replay.errors import RecorderError
 
 
 class Recorder(Protocol):
-    """A recorder: a source dataset and options in, one log out (written atomically)."""
+    """A recorder: a source dataset and options in, one log out (written atomically, or chunk by chunk with ``live``)."""
 
     def __call__(
-        self, source: Any, out_path: str | Path, options: Any, *, force: bool = False, progress: Any = None
+        self, source: Any, out_path: str | Path, options: Any, *, force: bool = False, progress: Any = None, live: bool = False
     ) -> Any: ...
 
 
@@ -57,7 +57,8 @@ RECORDERS: dict[str, RecorderInfo] = {
         RecorderInfo("euroc", "recorders.euroc", "record_euroc", "EurocOptions", "EuRoC ASL layout (mav0/cam0, mav0/cam1, state_groundtruth_estimate0)"),
         RecorderInfo("folder", "recorders.folder", "record_folder", "FolderOptions", "left/right image folders plus a planar odometry CSV"),
         RecorderInfo("g2o", "recorders.g2o", "record_g2o", "G2oOptions", "a 2-D pose graph (g2o, TORO, Vertigo ground truth)"),
-        RecorderInfo("ros2", "recorders.ros2", "record_ros2", "Ros2Options", "a ROS 2 MCAP (sensor_msgs images, nav_msgs/Odometry)"),
+        RecorderInfo("rosbag", "recorders.rosbag", "record_rosbag", "RosbagOptions", "ROS 1 bags, ROS 2 bags (sqlite3, MCAP) through rosbags: images, odometry from a pose topic or TF, ground truth"),
+        RecorderInfo("ros2", "recorders.rosbag", "record_rosbag", "RosbagOptions", "alias of rosbag"),
     )
 }
 

@@ -510,8 +510,12 @@ def write_log(
     started: float | None = None,
     prefetch: int = 4,
     image_odometry: Callable[[np.ndarray | None, np.ndarray | None], Pose2D] | None = None,
+    live: bool = False,
 ) -> RecordStats:
     """Write ``frames`` (and candidates/labels at their query frames) through the one log writer.
+
+    With ``live`` the log is written at ``out_path`` itself, one flushed chunk per frame, for
+    ``lcv-replay LOG --follow`` (no atomic rename; see :class:`lcv_replay.log.writer.LogWriter`).
 
     Images are loaded ``prefetch`` frames ahead on a small thread pool (decoding and rectifying in
     OpenCV release the GIL), while the writer encodes in this thread.
@@ -549,12 +553,20 @@ def write_log(
                 image_format=header.image_format,
                 jpeg_quality=header.jpeg_quality,
                 odometry_information=header.odometry_information,
+                live=live,
             )
         )
         pool = stack.enter_context(ThreadPoolExecutor(max_workers=2)) if has_images else None
         pending: dict[int, Any] = {}
         if header.calibration is not None and n:
             writer.write_calibration(header.calibration, frames[0].stamp_ns)
+        if live:  # a follower learns what the log carries from its first chunk
+            if by_query:
+                writer.declare_candidates()
+            if labels_by_query:
+                writer.declare_labels()
+            if any(f.ground_truth is not None for f in frames):
+                writer.declare_ground_truth()
         for i, frame in enumerate(frames):
             if pool is not None:
                 for k in range(i, min(n, i + prefetch + 1)):
@@ -569,6 +581,7 @@ def write_log(
                 writer.write_loop_candidate(cand, frame.stamp_ns)
             for query, match in labels_by_query.get(i, ()):
                 writer.write_true_loop(query, match, frame.stamp_ns)
+            writer.flush()  # live: the frame is complete, a follower can read it now
             if progress is not None and (has_images or i % 256 == 0 or i == n - 1):
                 progress(i + 1, n)
     out_path = Path(out_path)

@@ -387,8 +387,9 @@ def record_euroc(
     *,
     force: bool = False,
     progress: ProgressCallback | None = None,
+    live: bool = False,
 ) -> RecordStats:
-    """Record a EuRoC sequence into an lcv-replay log at ``out_path`` (atomically)."""
+    """Record a EuRoC sequence into an lcv-replay log at ``out_path`` (atomically, or chunk by chunk with ``live``)."""
     from lcv_replay.fileio import check_output_path
 
     started = time.perf_counter()
@@ -417,4 +418,4 @@ def record_euroc(
         image_format=options.image_format,
         jpeg_quality=options.jpeg_quality,
     )
-    return write_log(out_path, header, frames, force=force, progress=progress, started=started, image_odometry=vo_hook(options.vo, seq.calibration))
+    return write_log(out_path, header, frames, force=force, progress=progress, started=started, live=live, image_odometry=vo_hook(options.vo, seq.calibration))

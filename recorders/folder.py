@@ -201,8 +201,9 @@ def record_folder(
     *,
     force: bool = False,
     progress: ProgressCallback | None = None,
+    live: bool = False,
 ) -> RecordStats:
-    """Record image folders and pose CSVs into an lcv-replay log at ``out_path`` (atomically)."""
+    """Record image folders and pose CSVs into an lcv-replay log at ``out_path`` (atomically, or chunk by chunk with ``live``)."""
     from lcv_replay.fileio import check_output_path
 
     started = time.perf_counter()
@@ -272,7 +273,7 @@ def record_folder(
         image_format=options.image_format,
         jpeg_quality=options.jpeg_quality,
     )
-    return write_log(out_path, header, frames, force=force, progress=progress, started=started, image_odometry=vo_hook(options.vo, calibration))
+    return write_log(out_path, header, frames, force=force, progress=progress, started=started, live=live, image_odometry=vo_hook(options.vo, calibration))
 
 
 def _frame_stamps(left: list[Path], odom: tuple[np.ndarray, np.ndarray] | None, options: FolderOptions, left_dir: Path) -> tuple[np.ndarray, str]:

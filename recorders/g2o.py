@@ -594,6 +594,7 @@ def record_g2o(
     *,
     force: bool = False,
     progress: ProgressCallback | None = None,
+    live: bool = False,
 ) -> RecordStats:
     """Record a 2-D pose graph into an lcv-replay log at ``out_path`` (atomically).
 
@@ -616,5 +617,5 @@ def record_g2o(
     )
     return write_log(
         out_path, header, frames, candidates=rec.candidates, true_loops=rec.true_loops or (),
-        force=force, progress=progress, started=started,
+        force=force, progress=progress, started=started, live=live,
     )

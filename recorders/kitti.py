@@ -261,8 +261,9 @@ def record_kitti(
     *,
     force: bool = False,
     progress: ProgressCallback | None = None,
+    live: bool = False,
 ) -> RecordStats:
-    """Record a KITTI odometry sequence into an lcv-replay log at ``out_path`` (atomically)."""
+    """Record a KITTI odometry sequence into an lcv-replay log at ``out_path`` (atomically, or chunk by chunk with ``live``)."""
     from lcv_replay.fileio import check_output_path
 
     started = time.perf_counter()
@@ -291,7 +292,7 @@ def record_kitti(
         image_format=options.image_format,
         jpeg_quality=options.jpeg_quality,
     )
-    return write_log(out_path, header, frames, force=force, progress=progress, started=started, image_odometry=vo_hook(options.vo, seq.calibration))
+    return write_log(out_path, header, frames, force=force, progress=progress, started=started, live=live, image_odometry=vo_hook(options.vo, seq.calibration))
 
 
 __all__ = ["KittiOptions", "KittiSequence", "load_kitti_sequence", "read_calib", "record_kitti"]

@@ -163,11 +163,15 @@ class SyntheticOptions:
         return self.start_stamp_ns + np.rint(np.arange(self.frames) * (1e9 / self.rate_hz)).astype(np.int64)
 
 
-def record_synthetic(out_path: str | Path, options: SyntheticOptions | None = None, *, force: bool = False, progress: ProgressCallback | None = None) -> RecordStats:
+def record_synthetic(
+    out_path: str | Path, options: SyntheticOptions | None = None, *, force: bool = False,
+    progress: ProgressCallback | None = None, live: bool = False,
+) -> RecordStats:
     """Render the synthetic world along its route and write an lcv-replay log.
 
     Args:
-        out_path: output ``.mcap`` (written atomically: an interrupted run leaves no file).
+        out_path: output ``.mcap`` (written atomically: an interrupted run leaves no file; with
+            ``live``, chunk by chunk at its final path, for ``lcv-replay OUT --follow``).
         options: what to record; :class:`SyntheticOptions` defaults when ``None``.
         force: overwrite an existing ``out_path``.
         progress: called with ``(frames_done, frames_total)`` after every frame.
@@ -213,8 +217,11 @@ def record_synthetic(out_path: str | Path, options: SyntheticOptions | None = No
                 "T_body_camera": json.dumps(t_body_camera(options.world).ravel().round(12).tolist()),
                 "odometry_source": "simulated drift" if tracker is None else "stereo VO on the rendered images",
             },
+            live=live,
         ) as writer:
             writer.write_calibration(calibration, int(stamps[0]))
+            if live:
+                writer.declare_ground_truth()
             for i in range(n):
                 for k in range(i, min(n, i + prefetch)):
                     if k not in pending:
@@ -222,6 +229,7 @@ def record_synthetic(out_path: str | Path, options: SyntheticOptions | None = No
                 left, right = pending.pop(i).result()
                 odom = Pose2D(*odometry[i]) if tracker is None else tracker.process(left, right).T_odom_base
                 writer.write_frame(i, int(stamps[i]), left=left, right=right, odom=odom, ground_truth=Pose2D(*truth[i]))
+                writer.flush()  # live: frame i is readable now (a no-op otherwise)
                 if progress is not None:
                     progress(i + 1, n)
     finally:

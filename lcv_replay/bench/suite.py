@@ -262,11 +262,17 @@ def run_suite(
     seed: int | None = None,
     progress: Callable[[SuiteEvent], None] | None = None,
     on_row: Callable[[CaseRow], None] | None = None,
+    distribute: Callable[..., tuple[list[BuiltLog], list[CaseRow]]] | None = None,
 ) -> SuiteReport:
     """Build every case's log (or reuse it) and run every method on it.
 
     A method that raises :class:`LcvError` on a case is recorded as an error row and the suite
     goes on. ``KeyboardInterrupt`` propagates; use ``on_row`` to keep the rows done so far.
+
+    ``distribute`` runs the (case, method) pairs elsewhere, e.g. as Ray tasks
+    (:func:`lcv_replay.fleet.suite.on_cluster`): it is called with the suite, the methods and this
+    function's arguments, and returns ``(builds, rows)``: the same rows in the same order as the
+    serial loop, apart from the time fields.
 
     Raises:
         ConfigError: an unknown method (checked before any work).
@@ -283,6 +289,15 @@ def run_suite(
     if unknown:
         raise ConfigError(f"unknown verification method '{unknown[0]}'", fix=f"use one of {', '.join(sorted(registered))}")
     started = time.perf_counter()
+    if distribute is not None:
+        builds, rows = distribute(
+            suite, methods, data_dir=data_dir, workdir=workdir, config=config, seed=seed,
+            run_one=_run_one, progress=progress, on_row=on_row,
+        )
+        return SuiteReport(
+            suite.name, suite.description, data_dir, workdir, methods, tuple(rows), tuple(builds),
+            time.perf_counter() - started, to_dict(config),
+        )
     total_runs = len(suite.cases) * len(methods)
     builds: list[BuiltLog] = []
     rows: list[CaseRow] = []

@@ -82,6 +82,8 @@ def bench_suite_command(
     workdir: Optional[Path] = typer.Option(None, "--workdir", help="Where the suite's logs are built and reused (default ~/.cache/lcv-replay/suite)."),
     data: Optional[Path] = typer.Option(None, "--data", help="Shared data folder (default $LCV_SHARED_DATA, else ../shared/data)."),
     rows_table: bool = typer.Option(True, "--rows/--no-rows", help="Print the per-case table, not only the per-method summary."),
+    address: Optional[str] = typer.Option(None, "--address", help="Run the (case, method) pairs on this Ray cluster (auto, HOST:PORT, ray://HOST:PORT); see 'lcv-replay batch --help'."),
+    workers: Optional[int] = typer.Option(None, "--workers", "-j", help="Run the (case, method) pairs as Ray tasks, this many at a time (an embedded local cluster unless --address); default: serial, in this process."),
 ) -> None:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -134,14 +136,23 @@ def bench_suite_command(
             )
             console.print(f"[{len(done_rows)}/{len(chosen.cases) * len(methods)}] {row.case} {row.method}: {status}", markup=False, highlight=False)
 
+    import contextlib
     import time
 
+    from lcv_replay.fleet.suite import on_cluster
+
+    cluster = contextlib.nullcontext()
+    if address is not None or workers is not None:
+        from lcv_replay.cli.fleet import cluster_options
+        from lcv_replay.fleet.engine import Cluster
+
+        cluster = Cluster(cluster_options(address, workers))
     started = time.perf_counter()
     try:
-        with progress:
+        with cluster as connected, progress:
             report = run_suite(
                 chosen, data_dir=data_dir, workdir=workdir, config=verification, methods=methods,
-                seed=seed, progress=on_event, on_row=on_row,
+                seed=seed, progress=on_event, on_row=on_row, distribute=None if connected is None else on_cluster(connected),
             )
     except KeyboardInterrupt:
         from lcv_replay.config import to_dict

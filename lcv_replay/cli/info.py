@@ -1,4 +1,10 @@
-"""`lcv-replay info LOG.mcap [--json] [--recover]`: inspect a log, like ``ros2 bag info``."""
+"""`lcv-replay info LOG [--json] [--recover]`: inspect a log, like ``ros2 bag info``.
+
+LOG is an lcv-replay MCAP log, or any foreign log: a ROS 1 bag (several split parts), a ROS 2 bag
+folder or ``.db3``, a ROS 2 ``.mcap``, or any other MCAP. A foreign log gets ``ros2 bag info``'s
+listing plus what lcv-replay could use from it and the command that imports it
+(:func:`recorders.bags.inspect_bag`).
+"""
 
 from __future__ import annotations
 
@@ -9,9 +15,9 @@ import typer
 from lcv_replay.cli.app import app, bench_app
 
 
-@app.command("info", help="Show a log's topics, counts, rates, frames and contents (like 'ros2 bag info').")
+@app.command("info", help="Show a log's topics, counts, rates, frames and contents (like 'ros2 bag info'); also ROS 1/ROS 2 bags and any MCAP.")
 def info_command(
-    log: Path = typer.Argument(..., help="An lcv-replay MCAP log."),
+    logs: list[Path] = typer.Argument(..., metavar="LOG", help="An lcv-replay MCAP log, or a foreign log: ROS 1 .bag (split parts), ROS 2 bag folder, .db3, ROS 2 or other .mcap."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object (stable keys; see docs/log-format.md)."),
     recover: bool = typer.Option(False, "--recover", help="Salvage the complete chunks of a truncated or damaged file."),
     check: bool = typer.Option(
@@ -20,10 +26,32 @@ def info_command(
 ) -> None:
     import json
 
+    from lcv_replay.errors import ConfigError, LogFormatError
+    from lcv_replay.log.container import load_container
     from lcv_replay.log.inspect import format_info, info_to_json
-    from lcv_replay.log.reader import open_log
+    from lcv_replay.log import format as fmt
+    from lcv_replay.log.reader import EXPECTED_SCHEMAS, LogReader
+    from recorders.bags import bag_info_to_json, format_bag_info, inspect_bag, inspect_mcap, is_foreign_log
 
-    with open_log(log, recover=recover) as reader:
+    if len(logs) > 1 or is_foreign_log(logs[0]):
+        if recover:
+            raise ConfigError("--recover applies to lcv-replay logs", fix="drop --recover for a bag")
+        bag = inspect_bag(logs)
+        typer.echo(json.dumps(bag_info_to_json(bag), indent=2) if as_json else format_bag_info(bag))
+        return
+    log = logs[0]
+    container = load_container(log, recover=recover)
+    try:
+        reader = LogReader(container)
+    except LogFormatError as exc:
+        topics = {ch.topic for ch in container.channels.values()}
+        if fmt.METADATA_NAME in container.metadata or not topics or topics & set(EXPECTED_SCHEMAS):
+            raise  # an lcv-replay log (or an empty file): say what is wrong with it
+        # Some other MCAP (channels, but no lcv metadata and none of our topics): list it as 'ros2 bag info' would.
+        bag = inspect_mcap(container, reason=exc.message)
+        typer.echo(json.dumps(bag_info_to_json(bag), indent=2) if as_json else format_bag_info(bag))
+        return
+    with reader:
         if check:
             reader.check()
         info = reader.info

@@ -50,15 +50,35 @@ IMAGE_FORMAT_OPTION = typer.Option(ImageFormatChoice.png, "--image-format", help
 JPEG_QUALITY_OPTION = typer.Option(95, "--jpeg-quality", min=1, max=100, help="JPEG quality with --image-format jpeg.")
 START_FRAME_OPTION = typer.Option(0, "--start-frame", min=0, help="First source frame to record.")
 MAX_FRAMES_OPTION = typer.Option(None, "--max-frames", min=1, help="Record at most this many frames.")
+LIVE_OPTION = typer.Option(
+    False, "--live",
+    help="Write OUT itself chunk by chunk (one flushed chunk per frame) so that 'lcv-replay OUT --follow' can watch it while it "
+    "records. Gives up the atomic rename: OUT is visible and incomplete meanwhile; an interrupted run leaves the frames so far.",
+)
+
+# Topic options of bags, shared by 'record rosbag' and the direct replay 'lcv-replay BAG'.
+LEFT_TOPIC_OPTION = typer.Option(None, "--left-topic", help="Left camera: sensor_msgs/Image or CompressedImage (default: the only stereo pair or image topic).")
+RIGHT_TOPIC_OPTION = typer.Option(None, "--right-topic", help="Right camera (default: the left topic's left/right sibling).")
+NO_IMAGES_OPTION = typer.Option(False, "--no-images", help="Import no images (odometry and ground truth only).")
+ODOM_TOPIC_OPTION = typer.Option(None, "--odom-topic", help="Odometry: nav_msgs/Odometry, PoseStamped or PoseWithCovarianceStamped (default: the only candidate; '' for none).")
+ODOM_FROM_TF_OPTION = typer.Option(None, "--odom-from-tf", metavar="PARENT:CHILD", help="Odometry from the /tf and /tf_static chain PARENT -> CHILD, e.g. odom:base_link.")
+GROUND_TRUTH_TOPIC_OPTION = typer.Option(None, "--ground-truth-topic", help="Ground truth, same types (default: the pose topic named like groundtruth/gt/vicon/mocap, if only one; '' for none).")
+GROUND_TRUTH_FROM_TF_OPTION = typer.Option(None, "--ground-truth-from-tf", metavar="PARENT:CHILD", help="Ground truth from a TF chain, e.g. map:base_link.")
 
 
 @contextlib.contextmanager
 def recording_progress(description: str, *, quiet: bool) -> Iterator:
-    """Yield a ``progress(done, total)`` callback drawing a rich progress bar on stderr (or ``None``)."""
-    if quiet:
+    """Yield a ``progress(done, total)`` callback drawing a rich progress bar on stderr (or ``None``).
+
+    No bar when stderr is not a terminal (a log file or a pipe gets no control characters, and an
+    error stays one line).
+    """
+    from rich.console import Console
+
+    console = Console(stderr=True)
+    if quiet or not console.is_terminal:
         yield None
         return
-    from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     with Progress(
@@ -68,7 +88,7 @@ def recording_progress(description: str, *, quiet: bool) -> Iterator:
         TextColumn("frames"),
         TimeElapsedColumn(),
         TimeRemainingColumn(),
-        console=Console(stderr=True),
+        console=console,
         transient=True,
     ) as bar:
         task = bar.add_task(description, total=None)
@@ -79,13 +99,13 @@ def recording_progress(description: str, *, quiet: bool) -> Iterator:
         yield update
 
 
-def _run_recorder(name: str, source, out: Path, options, *, force: bool, quiet: bool) -> None:
+def _run_recorder(name: str, source, out: Path, options, *, force: bool, quiet: bool, live: bool = False) -> None:
     """Run the registered recorder ``name`` with a progress bar, then print its one-line summary."""
     from recorders import get_recorder
 
     record = get_recorder(name).load()
     with recording_progress(name, quiet=quiet) as progress:
-        stats = record(source, out, options, force=force, progress=progress)
+        stats = record(source, out, options, force=force, progress=progress, live=live)
     if not quiet:
         typer.echo(stats.summary())
 
@@ -109,6 +129,7 @@ def record_g2o_command(
     dataset: Optional[str] = typer.Option(None, "--dataset", help="Dataset name for the log metadata."),
     force: bool = FORCE_OPTION,
     quiet: bool = QUIET_OPTION,
+    live: bool = LIVE_OPTION,
 ) -> None:
     """Record a 2-D pose graph: odometry chain -> /odom, other edges -> /loop_candidates."""
     from recorders.g2o import G2oOptions
@@ -128,7 +149,7 @@ def record_g2o_command(
         source=source,
         dataset=dataset,
     )
-    _run_recorder("g2o", graph, out, options, force=force, quiet=quiet)
+    _run_recorder("g2o", graph, out, options, force=force, quiet=quiet, live=live)
 
 
 @record_app.command("kitti")
@@ -149,6 +170,7 @@ def record_kitti_command(
     jpeg_quality: int = JPEG_QUALITY_OPTION,
     force: bool = FORCE_OPTION,
     quiet: bool = QUIET_OPTION,
+    live: bool = LIVE_OPTION,
 ) -> None:
     """Record a KITTI odometry sequence (stereo images, calibration, odometry, ground truth)."""
     from recorders.kitti import KittiOptions
@@ -167,7 +189,7 @@ def record_kitti_command(
         image_format=image_format.value,  # type: ignore[arg-type]
         jpeg_quality=jpeg_quality,
     )
-    _run_recorder("kitti", source, out, options, force=force, quiet=quiet)
+    _run_recorder("kitti", source, out, options, force=force, quiet=quiet, live=live)
 
 
 @record_app.command("euroc")
@@ -186,6 +208,7 @@ def record_euroc_command(
     jpeg_quality: int = JPEG_QUALITY_OPTION,
     force: bool = FORCE_OPTION,
     quiet: bool = QUIET_OPTION,
+    live: bool = LIVE_OPTION,
 ) -> None:
     """Record a EuRoC (ASL layout) stereo sequence, rectified, with its ground truth."""
     from recorders.euroc import EurocOptions
@@ -202,7 +225,7 @@ def record_euroc_command(
         image_format=image_format.value,  # type: ignore[arg-type]
         jpeg_quality=jpeg_quality,
     )
-    _run_recorder("euroc", source, out, options, force=force, quiet=quiet)
+    _run_recorder("euroc", source, out, options, force=force, quiet=quiet, live=live)
 
 
 class StampSourceChoice(str, enum.Enum):
@@ -230,6 +253,7 @@ def record_folder_command(
     jpeg_quality: int = JPEG_QUALITY_OPTION,
     force: bool = FORCE_OPTION,
     quiet: bool = QUIET_OPTION,
+    live: bool = LIVE_OPTION,
 ) -> None:
     """Record left/right image folders plus a timestamped planar odometry CSV."""
     from recorders.folder import FolderOptions
@@ -248,7 +272,7 @@ def record_folder_command(
         image_format=image_format.value,  # type: ignore[arg-type]
         jpeg_quality=jpeg_quality,
     )
-    _run_recorder("folder", source, out, options, force=force, quiet=quiet)
+    _run_recorder("folder", source, out, options, force=force, quiet=quiet, live=live)
 
 
 class TimeSourceChoice(str, enum.Enum):
@@ -257,44 +281,81 @@ class TimeSourceChoice(str, enum.Enum):
     log = "log"
 
 
-@record_app.command("ros2")
-def record_ros2_command(
-    bag: Path = typer.Argument(..., help="ROS 2 bag in MCAP storage (.mcap, CDR encoding)."),
+def rosbag_options(
+    *,
+    left_topic: Optional[str] = None,
+    right_topic: Optional[str] = None,
+    no_images: bool = False,
+    odom_topic: Optional[str] = None,
+    odom_from_tf: Optional[str] = None,
+    ground_truth_topic: Optional[str] = None,
+    ground_truth_from_tf: Optional[str] = None,
+    **more,
+):
+    """The :class:`recorders.rosbag.RosbagOptions` of the topic flags (shared with the direct replay)."""
+    from recorders.rosbag import RosbagOptions
+
+    return RosbagOptions(
+        left_topic=left_topic,
+        right_topic=right_topic,
+        no_images=no_images,
+        odom_topic=odom_topic,
+        odom_from_tf=odom_from_tf,
+        ground_truth_topic=ground_truth_topic,
+        ground_truth_from_tf=ground_truth_from_tf,
+        **more,
+    )
+
+
+@record_app.command("rosbag")
+def record_rosbag_command(
+    bag: list[Path] = typer.Argument(..., metavar="BAG", help="ROS 1 .bag file(s) (split parts in any order), a ROS 2 bag folder (metadata.yaml + .db3/.mcap), a .db3, or a ROS 2 .mcap."),
     out: Path = OUT_OPTION,
-    left_topic: Optional[str] = typer.Option(None, "--left-topic", help="Left camera: sensor_msgs/msg/Image or CompressedImage."),
-    right_topic: Optional[str] = typer.Option(None, "--right-topic", help="Right camera: sensor_msgs/msg/Image or CompressedImage."),
-    odom_topic: str = typer.Option("/odom", "--odom-topic", help="nav_msgs/msg/Odometry topic, projected to planar ('' for none)."),
-    ground_truth_topic: Optional[str] = typer.Option(None, "--ground-truth-topic", help="Ground truth: Odometry, PoseStamped or PoseWithCovarianceStamped."),
-    left_info_topic: Optional[str] = typer.Option(None, "--left-info-topic", help="sensor_msgs/msg/CameraInfo of the left camera (default: the sibling camera_info)."),
-    right_info_topic: Optional[str] = typer.Option(None, "--right-info-topic", help="sensor_msgs/msg/CameraInfo of the right camera (default: the sibling camera_info)."),
-    time_source: TimeSourceChoice = typer.Option(TimeSourceChoice.auto, "--time-source", help="Frame stamps from header.stamp, MCAP log_time, or header unless zero (auto)."),
+    left_topic: Optional[str] = LEFT_TOPIC_OPTION,
+    right_topic: Optional[str] = RIGHT_TOPIC_OPTION,
+    no_images: bool = NO_IMAGES_OPTION,
+    odom_topic: Optional[str] = ODOM_TOPIC_OPTION,
+    odom_from_tf: Optional[str] = ODOM_FROM_TF_OPTION,
+    ground_truth_topic: Optional[str] = GROUND_TRUTH_TOPIC_OPTION,
+    ground_truth_from_tf: Optional[str] = GROUND_TRUTH_FROM_TF_OPTION,
+    left_info_topic: Optional[str] = typer.Option(None, "--left-info-topic", help="sensor_msgs/CameraInfo of the left camera (default: the sibling camera_info)."),
+    right_info_topic: Optional[str] = typer.Option(None, "--right-info-topic", help="sensor_msgs/CameraInfo of the right camera (default: the sibling camera_info)."),
+    time_source: TimeSourceChoice = typer.Option(TimeSourceChoice.auto, "--time-source", help="Stamps from header.stamp, the bag's receive time (log), or header unless zero (auto)."),
     max_rate_hz: Optional[float] = typer.Option(None, "--max-rate-hz", help="Without images: keep at most this many odometry frames per second."),
     stereo_tolerance_ns: int = typer.Option(1_000_000, "--stereo-tolerance-ns", min=0, help="Left/right stamps closer than this form a pair."),
-    max_gap_ns: int = typer.Option(500_000_000, "--max-gap-ns", min=1, help="Largest odometry gap bridged by interpolation to image stamps."),
+    max_gap_ns: int = typer.Option(500_000_000, "--max-gap-ns", min=1, help="Largest pose (or TF) gap bridged by interpolation to the frame stamps."),
     max_frames: Optional[int] = MAX_FRAMES_OPTION,
-    dataset: Optional[str] = typer.Option(None, "--dataset", help="Dataset name for the log metadata."),
+    vo: bool = typer.Option(False, "--vo", help="Compute /odom with stereo visual odometry on the images (instead of an odometry topic)."),
+    dataset: Optional[str] = typer.Option(None, "--dataset", help="Dataset name for the log metadata (default: the bag's name)."),
     image_format: ImageFormatChoice = IMAGE_FORMAT_OPTION,
     jpeg_quality: int = JPEG_QUALITY_OPTION,
     force: bool = FORCE_OPTION,
     quiet: bool = QUIET_OPTION,
+    live: bool = LIVE_OPTION,
 ) -> None:
-    """Import a ROS 2 MCAP: stereo images, nav_msgs/Odometry (planar), optional ground truth."""
-    from recorders.ros2 import Ros2Options
+    """Import a ROS 1 or ROS 2 bag (rosbags): stereo images, odometry (a pose topic or a TF chain), ground truth.
 
-    options = Ros2Options(
-        left_topic=left_topic,
-        right_topic=right_topic,
-        odom_topic=odom_topic or None,
-        ground_truth_topic=ground_truth_topic,
+    Topics you do not name are chosen when there is only one candidate of their kind (a note says
+    which); with several, the error lists them and the flag to choose. 'lcv-replay info BAG' shows
+    what a bag holds and the command to import it.
+    """
+    options = rosbag_options(
+        left_topic=left_topic, right_topic=right_topic, no_images=no_images, odom_topic=odom_topic, odom_from_tf=odom_from_tf,
+        ground_truth_topic=ground_truth_topic, ground_truth_from_tf=ground_truth_from_tf,
         left_info_topic=left_info_topic,
         right_info_topic=right_info_topic,
-        time_source=time_source.value,  # type: ignore[arg-type]
+        time_source=time_source.value,
         max_rate_hz=max_rate_hz,
         stereo_tolerance_ns=stereo_tolerance_ns,
         max_gap_ns=max_gap_ns,
         max_frames=max_frames,
         dataset=dataset,
-        image_format=image_format.value,  # type: ignore[arg-type]
+        image_format=image_format.value,
         jpeg_quality=jpeg_quality,
+        vo=vo,
     )
-    _run_recorder("ros2", bag, out, options, force=force, quiet=quiet)
+    _run_recorder("rosbag", bag, out, options, force=force, quiet=quiet, live=live)
+
+
+# The importer of earlier versions read ROS 2 MCAP only; its name stays as an alias.
+record_app.command("ros2", hidden=True, help="Alias of 'record rosbag' (kept for existing scripts).")(record_rosbag_command)

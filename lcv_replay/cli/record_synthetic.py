@@ -79,6 +79,7 @@ def record_synthetic_command(
     jpeg_quality: int = typer.Option(95, "--jpeg-quality", min=1, max=100, help="JPEG quality with --image-format jpeg."),
     force: bool = typer.Option(False, "--force", "-f", help="Overwrite OUT if it exists."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and no summary line."),
+    live: bool = typer.Option(False, "--live", help="Write OUT itself chunk by chunk (one flushed chunk per frame) so that 'lcv-replay OUT --follow' can watch it; gives up the atomic rename."),
 ) -> None:
     """Record the built-in synthetic street world: rendered stereo, drifting odometry, ground truth.
 
@@ -104,7 +105,7 @@ def record_synthetic_command(
         jpeg_quality=jpeg_quality,
     )
     with _progress_bar(quiet) as progress:
-        stats = record_synthetic(out, options, force=force, progress=progress)
+        stats = record_synthetic(out, options, force=force, progress=progress, live=live)
     if not quiet:
         typer.echo(stats.summary())
 

@@ -1,16 +1,34 @@
-"""`lcv-replay LOG.mcap [options]`: the replay (the hidden default command ``replay``)."""
+"""`lcv-replay LOG.mcap [options]`: the replay (the hidden default command ``replay``).
+
+Field logs are replayed as they come (the field-log part of this command):
+
+* a ROS 1 bag, ROS 2 bag or ROS 2 MCAP is converted first (:func:`recorders.convert.converted_log`:
+  the topic options of ``record rosbag``, cached by content and options), then replayed;
+* ``--follow`` opens the log with the follower of :mod:`lcv_replay.log.follow` (a reader mode: the
+  replay itself is unchanged), for a log that a recorder is still writing.
+"""
 
 from __future__ import annotations
 
 import enum
 import os
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
 import typer
 
 from lcv_replay.cli.app import app
+from lcv_replay.cli.record import (
+    GROUND_TRUTH_FROM_TF_OPTION,
+    GROUND_TRUTH_TOPIC_OPTION,
+    LEFT_TOPIC_OPTION,
+    NO_IMAGES_OPTION,
+    ODOM_FROM_TF_OPTION,
+    ODOM_TOPIC_OPTION,
+    RIGHT_TOPIC_OPTION,
+)
 
 
 class ConstraintChoice(str, enum.Enum):
@@ -19,9 +37,10 @@ class ConstraintChoice(str, enum.Enum):
     both = "both"
 
 
-def default_save_path(log_path: Path) -> Path:
-    """``LOG.rrd`` next to the log, or in the current folder when the log's folder is not writable."""
-    beside = log_path.with_suffix(".rrd")
+def default_save_path(log_path: Path, name: str | None = None) -> Path:
+    """``LOG.rrd`` next to the log (``NAME.rrd`` if given), or in the current folder when the log's
+    folder is not writable."""
+    beside = log_path.with_suffix(".rrd") if name is None else log_path.parent / f"{name}.rrd"
     folder = beside.parent if str(beside.parent) else Path(".")
     if os.access(folder, os.W_OK):
         return beside
@@ -88,9 +107,9 @@ class _ServeUntilInterrupted:
         pass
 
 
-@app.command("replay", hidden=True, help="Replay LOG.mcap through retrieval and incremental verification, logging every step to Rerun.")
+@app.command("replay", hidden=True, help="Replay LOG.mcap (or a ROS bag, converted on the fly) through retrieval and incremental verification, logging every step to Rerun.")
 def replay_command(
-    log: Path = typer.Argument(..., metavar="LOG.mcap", help="An lcv-replay MCAP log (written by 'lcv-replay record')."),
+    logs: list[Path] = typer.Argument(..., metavar="LOG", help="An lcv-replay MCAP log, or a ROS 1 bag (split parts), ROS 2 bag folder, .db3 or ROS 2 .mcap (converted first)."),
     rate: str = typer.Option("max", "--rate", "-r", help="Playback rate: 1.0 = real time by the log's timestamps; 'max' = as fast as possible."),
     start_offset: float = typer.Option(0.0, "--start-offset", help="Start this many seconds into the log."),
     duration: Optional[float] = typer.Option(None, "--duration", help="Replay only this many seconds."),
@@ -111,13 +130,31 @@ def replay_command(
     summary_json: Optional[Path] = typer.Option(None, "--summary-json", help="Also write the summary as JSON (keys: docs/summary-json.md)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
     recover: bool = typer.Option(False, "--recover", help="Read the complete chunks of a truncated log."),
+    follow: bool = typer.Option(False, "--follow", help="Follow a log that is still being written (record ... --live): read each chunk as it lands; end at its footer, after --idle-timeout without growth, or on Ctrl-C."),
+    idle_timeout: float = typer.Option(30.0, "--idle-timeout", metavar="S", help="With --follow: end after S seconds without growth (a writer that stopped)."),
+    left_topic: Optional[str] = LEFT_TOPIC_OPTION,
+    right_topic: Optional[str] = RIGHT_TOPIC_OPTION,
+    no_images: bool = NO_IMAGES_OPTION,
+    odom_topic: Optional[str] = ODOM_TOPIC_OPTION,
+    odom_from_tf: Optional[str] = ODOM_FROM_TF_OPTION,
+    ground_truth_topic: Optional[str] = GROUND_TRUTH_TOPIC_OPTION,
+    ground_truth_from_tf: Optional[str] = GROUND_TRUTH_FROM_TF_OPTION,
+    keep_converted: bool = typer.Option(False, "--keep-converted", help="For a bag: write the converted log beside it (NAME.lcv.mcap) instead of the cache (~/.cache/lcv-replay/converted)."),
 ) -> None:
     import dataclasses
 
     from lcv_replay.config import load_config
     from lcv_replay.pacing import parse_rate
-    from lcv_replay.replay import ReplayOptions, replay
+    from lcv_replay.replay import ReplayOptions, StopToken, replay
 
+    topic_flags = {
+        "--left-topic": left_topic, "--right-topic": right_topic, "--no-images": no_images or None,
+        "--odom-topic": odom_topic, "--odom-from-tf": odom_from_tf, "--ground-truth-topic": ground_truth_topic,
+        "--ground-truth-from-tf": ground_truth_from_tf, "--keep-converted": keep_converted or None,
+    }
+    stop = StopToken()
+    field = _field_log(logs, topic_flags, follow=follow, recover=recover, quiet=quiet, idle_timeout_s=idle_timeout, stop=stop)
+    log = field.path
     replay_config = load_config(config)
     if image_every is not None:
         replay_config = dataclasses.replace(replay_config, rerun=dataclasses.replace(replay_config.rerun, image_every=image_every))
@@ -131,6 +168,7 @@ def replay_command(
         duration_s=duration,
         seed=seed,
         recover=recover,
+        open_reader=_follower(field.follow_idle_timeout_s or idle_timeout, stop) if follow else None,
     )
     if not log.exists():  # before any output is touched
         from lcv_replay.errors import LogFormatError
@@ -141,11 +179,110 @@ def replay_command(
         from lcv_replay.sinks.config import RerunOutputs
 
         outputs = RerunOutputs(
-            save=None if no_save else (save if save is not None else default_save_path(log)),
+            save=None if no_save else (save if save is not None else field.default_rrd),
             spawn=spawn, connect=connect, serve=serve, grpc_port=grpc_port, web_port=web_port,
             memory_limit=memory_limit,
         )
     sinks = build_sinks(rerun_config=replay_config.rerun, outputs=outputs, summary_json=summary_json, quiet=quiet)
-    summary = replay(options, sinks)
+    try:
+        summary = replay(options, sinks, stop=stop)
+    except KeyboardInterrupt:  # before the first frame (a follower waiting for the recorder)
+        typer.echo("interrupted before the first frame: nothing to summarise", err=True)
+        raise typer.Exit(130) from None
+    finally:
+        field.close()
     if summary.interrupted:
         raise typer.Exit(130)
+
+
+@dataclass
+class _FieldLog:
+    """What the replay reads for the LOG argument: the log, its default .rrd, and a live conversion to wait for."""
+
+    path: Path
+    default_rrd: Path
+    conversion: object = None  # recorders.rosbag_live.LiveConversion while following a bag being recorded
+    follow_idle_timeout_s: float | None = None
+
+    def close(self) -> None:
+        """Stop waiting for a live conversion; raise its error (after the replay's outputs are written)."""
+        if self.conversion is None:
+            return
+        self.conversion.join(timeout=60.0)
+        if self.conversion.error is not None:
+            raise self.conversion.error
+
+
+def _field_log(logs: list[Path], topic_flags: dict, *, follow: bool, recover: bool, quiet: bool, idle_timeout_s: float,
+               stop) -> _FieldLog:
+    """The lcv-replay log to replay: a bag is converted first (its .rrd goes beside the bag); a ROS 2
+    MCAP being recorded is converted chunk by chunk while the replay follows the conversion."""
+    from lcv_replay.errors import ConfigError
+    from recorders.bags import is_foreign_log
+
+    given = [flag for flag, value in topic_flags.items() if value is not None]
+    if len(logs) == 1 and not is_foreign_log(logs[0]):
+        if given:
+            raise ConfigError(
+                f"{', '.join(given)} applies to bags, and {logs[0]} is an lcv-replay log (its topics are fixed)",
+                fix="drop the option, or pass the bag itself",
+            )
+        return _FieldLog(logs[0], default_save_path(logs[0]))
+    if recover:
+        raise ConfigError("--recover applies to lcv-replay logs, not to bags", fix="drop --recover")
+    from lcv_replay.cli.record import recording_progress, rosbag_options
+
+    options = rosbag_options(
+        left_topic=topic_flags["--left-topic"], right_topic=topic_flags["--right-topic"],
+        no_images=bool(topic_flags["--no-images"]), odom_topic=topic_flags["--odom-topic"],
+        odom_from_tf=topic_flags["--odom-from-tf"], ground_truth_topic=topic_flags["--ground-truth-topic"],
+        ground_truth_from_tf=topic_flags["--ground-truth-from-tf"],
+    )
+    keep = bool(topic_flags["--keep-converted"])
+    if follow:
+        return _follow_bag(logs, options, keep=keep, quiet=quiet, idle_timeout_s=idle_timeout_s, stop=stop)
+    from recorders.convert import converted_log
+
+    with recording_progress("converting", quiet=quiet) as progress:
+        converted = converted_log(logs, options, keep_converted=keep, progress=progress)
+    if not quiet:
+        verb = "using the conversion of" if converted.reused else "converted"
+        typer.echo(f"{verb} {converted.source.display}: {converted.path}", err=True)
+    return _FieldLog(converted.path, default_save_path(converted.source.paths[0], converted.source.name))
+
+
+def _follow_bag(logs: list[Path], options, *, keep: bool, quiet: bool, idle_timeout_s: float, stop) -> _FieldLog:
+    """--follow on a ROS 2 MCAP being recorded: convert it chunk by chunk in a thread, follow the conversion."""
+    import time
+
+    from lcv_replay.errors import ConfigError
+    from recorders.convert import cache_dir
+    from recorders.rosbag_live import start_live_conversion
+
+    path = logs[0]
+    if path.is_dir():  # a ROS 2 bag folder being recorded: its newest .mcap is the part being written
+        parts = sorted(path.glob("*.mcap"), key=lambda p: p.stat().st_mtime)
+        path = parts[-1] if parts else path
+    if len(logs) > 1 or path.suffix.lower() != ".mcap":
+        raise ConfigError(
+            f"--follow on {logs[0]}: only a ROS 2 MCAP being recorded can be followed (rosbags reads ROS 1 bags and "
+            "sqlite3 bags only once they are complete)",
+            fix="record with 'ros2 bag record -s mcap', or replay the finished bag without --follow",
+        )
+    folder = path.parent if keep else cache_dir()
+    folder.mkdir(parents=True, exist_ok=True)
+    out = folder / f"{path.stem}.followed-{time.strftime('%Y%m%d-%H%M%S')}.lcv.mcap"
+    conversion = start_live_conversion(path, out, options, idle_timeout_s=idle_timeout_s, stop=lambda: stop.requested)
+    if not quiet:
+        typer.echo(f"following {path} through its live conversion {out}", err=True)
+    # The conversion closes its log when the bag ends or stops growing; the follower waits a little longer.
+    return _FieldLog(out, default_save_path(path), conversion, follow_idle_timeout_s=idle_timeout_s + 10.0)
+
+
+def _follower(idle_timeout_s: float, stop):
+    """``open_reader`` of ReplayOptions for --follow: the follower, stopped by the replay's Ctrl-C."""
+    import functools
+
+    from lcv_replay.log.follow import follow_log
+
+    return functools.partial(follow_log, idle_timeout_s=idle_timeout_s, stop=lambda: stop.requested)

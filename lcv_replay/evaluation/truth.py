@@ -27,6 +27,7 @@ from lcv_replay.errors import VerificationError
 from lcv_replay.verification.base import needs_truth
 
 if TYPE_CHECKING:  # pragma: no cover
+    from lcv_replay.records import Frame
     from lcv_replay.verification.base import Constraint
 
 
@@ -163,14 +164,37 @@ class ConstraintTruth:
         ground_truth: ``(N, 3)`` ground-truth poses, NaN rows where a frame has none (used with
             ``GROUND_TRUTH``); a pair touching a NaN row is unknown.
         radius_m: T_p, the ground-truth distance below which a pair is true.
+
+    The labels and poses may also arrive frame by frame (:meth:`observe`, in frame order, after
+    what was given): the replay feeds them so, and a log still being written is judged like a
+    finished one.
     """
 
     def __init__(self, source: TruthSource, true_pairs: Iterable[tuple[int, int]] | None, ground_truth: np.ndarray | None, radius_m: float):
         self.source = source
-        self._pairs = None if true_pairs is None else set(true_pairs)
-        self._gt = ground_truth
+        self._pairs = set(true_pairs or ())
+        given = np.zeros((0, 3)) if ground_truth is None else np.asarray(ground_truth, dtype=np.float64).reshape(-1, 3)
+        self._gt = np.concatenate([given, np.full((max(1024, len(given)), 3), np.nan)])  # NaN beyond; capacity doubles
+        self._frames = len(given)
+        self._any_gt = bool(np.isfinite(given[:, 0]).any())
         self._radius_m = radius_m
         self.flags: list[bool | None] = []
+
+    def observe(self, frame: "Frame") -> None:
+        """Take the labels and the ground-truth pose of the next frame (its index is the next row)."""
+        self._pairs.update(frame.true_loops)
+        if self._frames == len(self._gt):
+            self._gt = np.concatenate([self._gt, np.full_like(self._gt, np.nan)])
+        gt = frame.ground_truth
+        if gt is not None and np.isfinite(gt.x_m):
+            self._gt[self._frames] = (gt.x_m, gt.y_m, gt.yaw_rad)
+            self._any_gt = True
+        self._frames += 1
+
+    @property
+    def ground_truth(self) -> np.ndarray | None:
+        """``(frames, 3)`` ground truth so far (NaN rows where unknown), or ``None`` when none is known."""
+        return self._gt[: self._frames] if self._any_gt else None
 
     def judge(self, pairs: Sequence[tuple[int, int]]) -> tuple[bool | None, ...]:
         """Truth of ``(query_frame, match_frame)`` pairs, ``None`` where unknown (no state change)."""
@@ -180,8 +204,11 @@ class ConstraintTruth:
             return loop_truth(pairs, true_pairs=self._pairs).is_true
         if self.source is TruthSource.GROUND_TRUTH:
             index = np.asarray(pairs, dtype=np.int64)
-            finite = np.all(np.isfinite(self._gt[index.reshape(-1), :2]).reshape(-1, 4), axis=1)
-            judged = loop_truth(pairs, ground_truth=np.nan_to_num(self._gt), radius_m=self._radius_m).is_true
+            gt = self._gt  # rows beyond the frames seen are NaN: unknown
+            if index.max() >= len(gt):
+                gt = np.concatenate([gt, np.full((int(index.max()) + 1 - len(gt), 3), np.nan)])
+            finite = np.all(np.isfinite(gt[index.reshape(-1), :2]).reshape(-1, 4), axis=1)
+            judged = loop_truth(pairs, ground_truth=np.nan_to_num(gt), radius_m=self._radius_m).is_true
             return tuple(t if ok else None for t, ok in zip(judged, finite))
         return (None,) * len(pairs)
 

@@ -100,6 +100,7 @@ class LogInfo:
     true_loop_count: int = 0
     image_format: str | None = None
     library: str = ""
+    growing: bool = False  # opened while still being written (--follow): frames and counts are those known so far
 
 
 @dataclass
@@ -309,7 +310,7 @@ class LogReader:
                     f"topic {channel.topic} has unknown schema {schema_name!r} "
                     f"(encoding {channel.message_encoding!r}); expected {' or '.join(names)} ({encoding})",
                     path=self.path,
-                    fix="convert the file with 'lcv-replay record' (e.g. 'lcv-replay record ros2' for ROS 2 bags)",
+                    fix="convert the file with 'lcv-replay record' (e.g. 'lcv-replay record rosbag' for ROS 1 and ROS 2 bags, or replay the bag directly)",
                 )
 
     def _check_monotonic(self) -> None:

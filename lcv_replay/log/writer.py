@@ -4,6 +4,15 @@ Every recorder hands its records to :class:`LogWriter`, which owns the schemas, 
 the temp-then-rename step (:func:`lcv_replay.fileio.atomic_output`): an interrupted or failed
 recording leaves no output file, and an existing file is refused unless ``force``.
 
+**Live mode** (``live=True``, ``record ... --live``) writes the final path itself, one MCAP chunk per
+frame, flushed to the operating system after every frame, so that ``lcv-replay LOG.mcap --follow``
+can read each frame as it lands. It gives up the atomic rename: while the recording runs, the file
+is visible and incomplete (no summary until it ends), and ``--force`` truncates the old file at the
+start, not at the end. An interrupted or failed live recording is finished with the frames written
+so far (a valid, shorter log), or removed if no frame was written. The ``lcv`` metadata says
+``chunking = frame`` (every chunk ends at a frame boundary), which lets a follower use each chunk
+as soon as it is complete.
+
 Frame index <-> time (docs/log-format.md): frame ``i`` is the ``i``-th call of :meth:`write_frame`;
 all of its messages get ``log_time = publish_time = stamp_ns`` and MCAP ``sequence = i``.
 """
@@ -47,6 +56,7 @@ RESERVED_METADATA_KEYS = (
     "odometry_information",
     "image_format",
     "compression",
+    "chunking",
 )
 
 
@@ -69,6 +79,7 @@ class LogWriter:
         encode_threads: image-encoding worker threads; up to ``4 * encode_threads`` frames may be
             queued (encoding) before :meth:`write_frame` blocks. An encoding failure is raised by a
             later call (``write_*`` or :meth:`close`).
+        live: write ``path`` directly, one flushed chunk per frame (see the module docstring).
 
     Raises:
         OutputError: ``path`` exists (without ``force``) or its folder is missing/unwritable.
@@ -91,6 +102,7 @@ class LogWriter:
         extra_metadata: dict[str, str] | None = None,
         chunk_size_bytes: int = 1 << 20,
         encode_threads: int = 2,
+        live: bool = False,
     ):
         self.path = Path(path)
         if image_format not in images.IMAGE_FORMATS:
@@ -133,7 +145,12 @@ class LogWriter:
         self._pool: ThreadPoolExecutor | None = None
         self._pending: deque[_PendingFrame] = deque()
 
-        self._atomic = atomic_output(self.path, force=force)
+        self.live = bool(live)
+        if self.live:  # the final path, written as it goes; only explicit flushes end a chunk
+            self._atomic = _LiveOutput(self.path, force=force)
+            chunk_size_bytes = 1 << 62
+        else:
+            self._atomic = atomic_output(self.path, force=force)
         tmp = self._atomic.__enter__()
         try:
             self._stream: BinaryIO = open(tmp, "wb")
@@ -158,10 +175,13 @@ class LogWriter:
                     "odometry_information": messages.information_to_json(odometry_information),
                     "image_format": image_format,
                     "compression": compression,
+                    **({"chunking": "frame"} if self.live else {}),
                     **{str(k): str(v) for k, v in extra.items()},
                 },
             )
             self._mcap.add_metadata(fmt.RECORDER_CONFIG_METADATA_NAME, config_record)
+            if self.live:
+                self._stream.flush()
         except BaseException:
             self._abort(*_exc_info())
             raise
@@ -209,8 +229,22 @@ class LogWriter:
         self._atomic.__exit__(None, None, None)
 
     def abort(self) -> None:
-        """Discard the recording: close and delete the temp file; ``path`` is left untouched."""
+        """Discard the recording: close and delete the temp file; ``path`` is left untouched.
+
+        In live mode the frames written so far are kept as a finished log (see the module docstring).
+        """
         self._abort(RuntimeError, RuntimeError("aborted"), None)
+
+    def flush(self) -> None:
+        """Live mode: end the current frame's chunk and flush it to the file, for a follower to read.
+
+        Call it after a frame's candidates and labels (a chunk must hold whole frames). A no-op
+        without ``live``: the temp file is not visible anyway.
+        """
+        self._check_open()
+        if self.live:
+            self._drain()
+            self._mcap.flush()
 
     def _abort(self, exc_type, exc, tb) -> None:
         if self._closed:
@@ -218,6 +252,10 @@ class LogWriter:
         self._closed = True
         self._pending.clear()
         self._shutdown_pool()
+        if self.live and self._frames_written:  # the file is public: leave a valid log of what was written
+            with contextlib.suppress(Exception):
+                self._mcap.finish()
+                self._atomic.keep = True
         with contextlib.suppress(Exception):
             self._stream.close()
         with contextlib.suppress(BaseException):
@@ -258,6 +296,8 @@ class LogWriter:
         """
         self._check_open()
         index, stamp_ns = int(index), int(stamp_ns)
+        if self.live and self._frames_written:
+            self.flush()  # the previous frame's chunk ends here, if the caller did not flush it
         if index != self._frames_written:
             raise RecorderError(
                 f"frame index {index} is out of order, expected {self._frames_written}", path=self.path
@@ -320,7 +360,7 @@ class LogWriter:
         self._frames_written += 1
         self._last_stamp_ns = stamp_ns
         self._frame_stamps_ns.append(stamp_ns)
-        self._flush_done(max_pending=4 * self._encode_threads)
+        self._flush_done(max_pending=0 if self.live else 4 * self._encode_threads)
 
     def write_loop_candidate(self, candidate: LoopCandidate, stamp_ns: int) -> None:
         """Write a candidate on ``/loop_candidates``; ``stamp_ns`` is the query frame's stamp.
@@ -369,6 +409,16 @@ class LogWriter:
         """
         self._check_open()
         self._json_channel(fmt.TRUE_LOOPS_TOPIC, messages.TRUE_LOOP_SCHEMA, messages.TRUE_LOOP_JSON_SCHEMA)
+
+    def declare_candidates(self) -> None:
+        """Register ``/loop_candidates`` before its first message (a follower then knows the log has candidates)."""
+        self._check_open()
+        self._json_channel(fmt.LOOP_CANDIDATES_TOPIC, messages.LOOP_CANDIDATE_SCHEMA, messages.LOOP_CANDIDATE_JSON_SCHEMA)
+
+    def declare_ground_truth(self) -> None:
+        """Register ``/ground_truth/pose`` before its first message (a follower then knows the log has ground truth)."""
+        self._check_open()
+        self._channel(fmt.GROUND_TRUTH_TOPIC, self._proto_schema(messages.PoseInFrame), MessageEncoding.Protobuf)
 
     # -- internals -------------------------------------------------------------------------------
     def _check_open(self) -> None:
@@ -451,13 +501,16 @@ class LogWriter:
             self._channels[topic] = channel_id
         return channel_id
 
-    def _write_proto(self, topic: str, message: Any, stamp_ns: int, sequence: int) -> None:
-        name = type(message).DESCRIPTOR.full_name
+    def _proto_schema(self, message_class: Any) -> int:
+        name = message_class.DESCRIPTOR.full_name
         schema_id = self._schemas.get(name)
         if schema_id is None:
-            schema_id = register_schema(self._mcap, type(message))
+            schema_id = register_schema(self._mcap, message_class)
             self._schemas[name] = schema_id
-        channel_id = self._channel(topic, schema_id, MessageEncoding.Protobuf)
+        return schema_id
+
+    def _write_proto(self, topic: str, message: Any, stamp_ns: int, sequence: int) -> None:
+        channel_id = self._channel(topic, self._proto_schema(type(message)), MessageEncoding.Protobuf)
         self._mcap.add_message(
             channel_id=channel_id,
             log_time=stamp_ns,
@@ -480,6 +533,28 @@ class LogWriter:
         self._mcap.add_message(
             channel_id=channel_id, log_time=stamp_ns, publish_time=stamp_ns, sequence=sequence, data=data
         )
+
+
+class _LiveOutput:
+    """The output of a live recording: the final path itself (no temp file, no rename).
+
+    Checks the path like :func:`lcv_replay.fileio.atomic_output`; on failure the file is removed
+    unless :attr:`keep` was set (the writer finished it with the frames written so far).
+    """
+
+    def __init__(self, path: Path, *, force: bool):
+        from lcv_replay.fileio import check_output_path
+
+        self.path = check_output_path(path, force=force)
+        self.keep = False
+
+    def __enter__(self) -> Path:
+        return self.path
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None and not self.keep:
+            with contextlib.suppress(FileNotFoundError):
+                self.path.unlink()
 
 
 @dataclass

@@ -32,9 +32,10 @@ class RetrievalStage:
     Args:
         config: the ``[retrieval]`` section.
         log_path: the log, whose content keys the descriptor cache.
+        cache: use the descriptor cache (not for a log still being written).
     """
 
-    def __init__(self, config: RetrievalConfig, log_path: Path):
+    def __init__(self, config: RetrievalConfig, log_path: Path, *, cache: bool = True):
         from lcv_replay.retrieval.descriptors import make_backend
         from lcv_replay.retrieval.retriever import Retriever
 
@@ -42,6 +43,7 @@ class RetrievalStage:
         self.backend = make_backend(config.backend, config)
         self.retriever = Retriever(config, dim=self.backend.dim)
         self._log_path = log_path
+        self._cache = cache  # False for a file still being written: its content hash is not final
 
     def _describe(self, frames: Iterable[Frame]) -> Iterator[Described]:
         from lcv_replay.retrieval.cache import describe_frames, log_cache_key
@@ -49,7 +51,7 @@ class RetrievalStage:
         return describe_frames(
             frames,
             self.backend,
-            cache_key=log_cache_key(self._log_path),
+            cache_key=log_cache_key(self._log_path) if self._cache else None,
             cache_dir=Path(self.config.cache_dir) if self.config.cache_dir else None,
             batch_size=self.config.batch_size,
         )

@@ -52,9 +52,7 @@ class ProgressSink(BaseSink):
 
     def _route_logging_above_the_bar(self) -> None:
         """Log lines on stderr are printed above the bar instead of through it (restored on close)."""
-        for handler in logging.getLogger().handlers:
-            if isinstance(handler, logging.StreamHandler) and handler.stream in (sys.stderr, sys.__stderr__):
-                self._swapped.append((handler, handler.setStream(_ConsoleStream(self.console))))
+        self._swapped.extend(route_logging_to(self.console))
 
     def on_frame(self, update: FrameUpdate) -> None:
         if self._progress is None:
@@ -84,6 +82,16 @@ class ProgressSink(BaseSink):
         if self._progress is not None:
             self._progress.stop()
             self._progress = None
+
+
+def route_logging_to(console: Any) -> list[tuple[logging.StreamHandler, Any]]:
+    """Point the root logger's stderr handlers at ``console`` (so log lines print above a live
+    progress bar); returns ``(handler, previous stream)`` pairs to restore with ``setStream``."""
+    swapped = []
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.StreamHandler) and handler.stream in (sys.stderr, sys.__stderr__):
+            swapped.append((handler, handler.setStream(_ConsoleStream(console))))
+    return swapped
 
 
 class _ConsoleStream:

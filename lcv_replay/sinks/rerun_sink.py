@@ -65,6 +65,7 @@ CONSISTENCY_MAX_CELLS = 1_000_000  # rows of the consistency tensor are cut to f
 TREE_MAX_NODES = 5_000  # the generation tree keeps the newest nodes beyond this
 JPEG_QUALITY = 85
 DETERMINISTIC_FLUSH_TICK_S = 1e6  # "never": file-only recordings flush on size and at explicit points
+LIVE_REFRESH_S = 0.25  # with a viewer watching, buffered rows and the map are sent at least this often
 
 #: Drawing priority of each ConstraintState (index = state value): what needs attention on top.
 DRAW_PRIORITY = np.array([0, 2, 0, 4, 3, 0])
@@ -243,11 +244,12 @@ class RerunSink(BaseSink):
         self._accepted: set[int] = set()
         self._top: tuple[int, int] | None = None  # (hypothesis id, score) of rank 1
         self._tree: dict[int, tuple[int | None, int | None, int]] = {}  # id -> (parent, constraint, window)
-        self._gt_display: np.ndarray | None = None
+        self._gt_rows: list[np.ndarray] = []  # ground truth per frame (world frame): the start's, then the frames'
         self._frame = 0
         self._stamp_ns = 0
         self._stamps: list[int] = []  # log_time of each frame, by index
         self._stages: list[str] | None = None  # verifier stage names of /metrics/stage_time_s
+        self._last_refresh = time.monotonic()
 
     @property
     def recording_path(self) -> Path | None:  # type: ignore[override]
@@ -305,7 +307,7 @@ class RerunSink(BaseSink):
         for name, color in (("precision", (40, 200, 80)), ("recall", (60, 140, 250)), ("ate_rmse_m", (240, 90, 40))):
             rec.log(bp.metric_path(name), rr.SeriesLines(colors=[color], names=[name]), static=True)
         if start.ground_truth is not None and len(start.ground_truth):
-            self._gt_display = np.asarray(start.ground_truth, dtype=np.float64)
+            self._gt_rows = list(np.asarray(start.ground_truth, dtype=np.float64))
 
     # ------------------------------------------------------------------ per frame
     def _set_time(self, frame: int, stamp_ns: int) -> None:
@@ -320,8 +322,11 @@ class RerunSink(BaseSink):
         self._stamps.append(int(frame.stamp_ns))
         odom = frame.odom
         self._map.add_odometry((odom.x_m, odom.y_m, odom.yaw_rad) if odom is not None else self._last_odom())
-        if self._gt_display is not None and self._map.frames == 1:
-            self._gt_display = anchor_to_first(self._gt_display, self._map.odometry[0])
+        if frame.index >= len(self._gt_rows) and (frame.ground_truth is not None or self._gt_rows):
+            # A log still being written (--follow) knew only part of its ground truth at the start.
+            self._gt_rows += [np.full(3, np.nan)] * (frame.index - len(self._gt_rows))
+            gt = frame.ground_truth
+            self._gt_rows.append(np.array([gt.x_m, gt.y_m, gt.yaw_rad]) if gt is not None else np.full(3, np.nan))
         if update.new_constraints:
             self._constraint_rows.extend([(c.id, c.query_frame, c.match_frame) for c in update.new_constraints])
 
@@ -344,6 +349,12 @@ class RerunSink(BaseSink):
             self._log_trajectories()
         if frame.index % COLUMN_FLUSH_FRAMES == COLUMN_FLUSH_FRAMES - 1:
             self._flush_columns()
+        elif self.outputs.live and time.monotonic() - self._last_refresh >= LIVE_REFRESH_S:
+            # Frames that arrive slowly (a followed log, a paced replay): a viewer sees each one now,
+            # not 50 frames later. A replay at full speed never gets here between two batches.
+            self._flush_columns()
+            self._log_trajectories()
+            self._last_refresh = time.monotonic()
 
     def _flush_columns(self) -> None:
         self._columns.flush(self._rec)
@@ -386,8 +397,9 @@ class RerunSink(BaseSink):
         n = self._map.frames
         rec.log(bp.TRAJ_ODOMETRY, rr.LineStrips2D([self._map.odometry[:, :2]], radii=_LINE, colors=[(150, 150, 150)], labels=["odometry"], show_labels=False))
         rec.log(bp.TRAJ_BEST, rr.LineStrips2D([self._map.poses()[:, :2]], radii=_THICK, colors=[_RANK1_COLOR], labels=["best estimate"], show_labels=False))
-        if self._gt_display is not None:
-            rec.log(bp.TRAJ_GROUND_TRUTH, rr.LineStrips2D([self._gt_display[:n, :2]], radii=_LINE, colors=[(90, 200, 255)], labels=["ground truth"], show_labels=False))
+        if self._gt_rows:  # drawn from the odometry's first pose, so the drift shows as their separation
+            gt = anchor_to_first(np.asarray(self._gt_rows[:n]), self._map.odometry[0])
+            rec.log(bp.TRAJ_GROUND_TRUTH, rr.LineStrips2D([gt[:, :2]], radii=_LINE, colors=[(90, 200, 255)], labels=["ground truth"], show_labels=False))
 
     # ------------------------------------------------------------------ retrieval
     def on_retrieval(self, update: RetrievalUpdate) -> None:

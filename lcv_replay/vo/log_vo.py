@@ -36,7 +36,7 @@ R = TypeVar("R")
 VO_METADATA_NAME = "lcv.vo"  # MCAP metadata record written next to VO odometry: config and summary
 RIGHT_IMAGE_HINT = (
     "record the right camera as well: KITTI image_1, EuRoC cam1, 'record folder --right DIR', "
-    "'record ros2 --right-topic TOPIC'"
+    "'record rosbag --right-topic TOPIC'"
 )
 
 

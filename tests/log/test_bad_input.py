@@ -166,7 +166,7 @@ def test_unknown_schema_on_a_known_topic(tmp_path):
         [(fmt.ODOM_TOPIC, b"\x00\x01\x00\x00", 0)],
         extra_channels={fmt.ODOM_TOPIC: ("nav_msgs/msg/Odometry", "ros2msg", "cdr")},
     )
-    _assert_cli_error(path, "/odom has unknown schema 'nav_msgs/msg/Odometry'", "foxglove.PoseInFrame", "record ros2")
+    _assert_cli_error(path, "/odom has unknown schema 'nav_msgs/msg/Odometry'", "foxglove.PoseInFrame", "record rosbag")
 
 
 @pytest.mark.parametrize("bad_value", [math.nan, math.inf])

@@ -24,7 +24,7 @@ def _record_args(name: str, tmp_path: Path) -> list[str]:
     if name == "folder":
         build_folder_tree(tmp_path / "folder", named_by_stamp=True)
         return [str(tmp_path / "folder")]
-    return [str(shared_path("ros2", "nav2_turtlebot.mcap")), "--max-frames", "300"]
+    return [str(shared_path("ros2", "nav2_turtlebot.mcap")), "--max-frames", "300"]  # rosbag (and its alias ros2)
 
 
 # name -> (frames, has_images, has_odometry, has_ground_truth, has_candidates, has_labels)
@@ -33,7 +33,7 @@ EXPECTED = {
     "kitti": (2, True, True, True, False, False),
     "euroc": (4, True, False, True, False, False),
     "folder": (5, True, True, False, False, False),
-    "ros2": (300, False, True, False, False, False),
+    "rosbag": (300, False, True, False, False, False),
 }
 
 
