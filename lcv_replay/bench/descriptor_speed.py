@@ -62,8 +62,8 @@ class Variant:
 
 VARIANTS: dict[str, Variant] = {
     "eager-untuned": Variant("library model, default threads and allocator", "reference", tune=False, channels_last=False),
-    "eager-tuned": Variant("library model, threads + mallopt", "reference", channels_last=False),
-    "eager-tuned-cl": Variant("library model, threads + mallopt, channels_last", "reference"),
+    "eager-tuned": Variant("library model, threads + mallopt + passive OpenMP wait", "reference", channels_last=False),
+    "eager-tuned-cl": Variant("library model, threads + mallopt + passive wait, channels_last", "reference"),
     "fold-bn-cl": Variant("BatchNorm folded (ZeroPad2d kept), channels_last", fold_padding=False),
     "fold-bn-pad-cl": Variant("BatchNorm and padding folded, channels_last (the backend's path)"),
     "fold-bn-pad-cl-jit": Variant("... + torch.jit trace/freeze/optimize_for_inference", mode="jit"),
@@ -87,6 +87,7 @@ def run_variant(name: str, *, batch: int = 8, runs: int = 20, size_px: int = 224
 
     start = time.perf_counter()
     if variant.tune:
+        enet.tune_omp_wait()
         enet.tune_allocator()
         enet.set_threads(threads)
     torch = enet.import_torch()
@@ -208,6 +209,7 @@ def _run_matmul(name: str, variant: Variant, *, batch: int, runs: int, size_px: 
     from lcv_replay.retrieval import efficientnet as enet
 
     start = time.perf_counter()
+    enet.tune_omp_wait()  # as the torch engine runs
     threads = enet.set_threads(threads)
     torch = enet.import_torch()
     n = 2048

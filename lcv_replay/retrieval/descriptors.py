@@ -228,7 +228,7 @@ class EfficientNetLite0Backend:
       warning; an explicit ``"onnxruntime"`` is an error.
     * ``"torch"``: loads the packaged weights, folds BatchNorm and padding into the convolutions
       (exact, see :mod:`lcv_replay.retrieval.efficientnet`), switches to channels_last, tunes the
-      allocator and thread count. ``precision = "bf16"`` and ``torch_compile`` are torch options
+      allocator, the thread count and OpenMP's wait policy (passive: see ``tune_omp_wait``). ``precision = "bf16"`` and ``torch_compile`` are torch options
       and select it.
 
     Built once, with one warm-up batch (``warmup_s`` records the whole cost).
@@ -245,6 +245,7 @@ class EfficientNetLite0Backend:
         from lcv_replay.retrieval import efficientnet as enet
 
         start = time.perf_counter()
+        enet.tune_omp_wait()  # before anything imports torch (the ONNX export does, once)
         self._enet = enet
         self.input_size_px = config.input_size_px
         self.batch_size = config.batch_size

@@ -4,6 +4,8 @@ and the descriptor cache, keyed by the engine each mode runs, never serves one m
 from __future__ import annotations
 
 import logging
+import os
+import sys
 
 import numpy as np
 import pytest
@@ -101,3 +103,14 @@ def test_the_descriptor_cache_is_invalidated_when_the_mode_changes(lite0_backend
     ranked = run(lite0_backend)
     assert (ranked.described, ranked.cached) == (8, 0) and ranked.cache_path != paper.cache_path
     assert run(torch_backend).cached == 8 and run(lite0_backend).cached == 8
+
+
+def test_torch_threads_wait_passively_unless_the_user_says_otherwise(monkeypatch):
+    """Set before torch loads libgomp (which reads it once); the user's own setting wins."""
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+    monkeypatch.delitem(sys.modules, "torch")  # as in a fresh process (restored after the test)
+    assert enet.tune_omp_wait() and os.environ["OMP_WAIT_POLICY"] == "PASSIVE"
+    monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")
+    assert enet.tune_omp_wait() and os.environ["OMP_WAIT_POLICY"] == "ACTIVE"
+    monkeypatch.setitem(sys.modules, "torch", torch)
+    assert not enet.tune_omp_wait()  # torch already loaded its OpenMP runtime: nothing to do
