@@ -317,7 +317,7 @@ class RankedIndex(_Library):
         initial_capacity: int = 1024,
     ):
         if code_bits < 8 or code_bits % 8:
-            raise RetrievalError(f"ranked codes must have a multiple of 8 bits, got {code_bits}", fix="use 64")
+            raise RetrievalError(f"ranked codes must have a multiple of 8 bits, got {code_bits}", fix="use a multiple of 8, e.g. 128")
         if candidates < 1:
             raise RetrievalError(f"candidates = {candidates} must be >= 1")
         super().__init__(code_bits=code_bits, code_words=-(-code_bits // 64), vector_dim=vector_dim, initial_capacity=initial_capacity)

@@ -299,7 +299,7 @@ class Retriever:
         if c.mode == "ranked":
             assert self._background_sq is not None
             similarities = [float(s) for s in calibrated_similarity(result.l2_distances, self._background_sq)]
-        else:  # the paper mode's published similarity, bit for bit
+        else:  # the paper mode's similarity as before modes existed, bit for bit
             similarities = [float(1.0 - 0.5 * float(d) ** 2) for d in result.l2_distances]
         candidates = tuple(
             LoopCandidate(

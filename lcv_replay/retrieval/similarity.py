@@ -15,7 +15,7 @@ vectors (``rerank = "pca"``) the same holds in PCA space. It is monotone in ``d`
 reorders candidates; it is not a probability (appearance alone cannot say how often a look-alike
 place is a different one: docs/retrieval.md gives the measured precision per similarity band).
 
-The paper mode keeps its published similarity ``1 - d^2 / 2`` so that it stays bit-identical.
+The paper mode keeps its similarity of before, ``1 - d^2 / 2``, so that it stays bit-identical.
 """
 
 from __future__ import annotations
