@@ -1,80 +1,54 @@
-"""List the wrong loop closures of a replay, straight from its .rrd (a scripted post-mortem).
+"""List the wrong loop closures of a replay from its recording (a scripted post-mortem).
 
 Usage::
 
-    python examples/list_wrong_loops.py kitti_00_alpha_0.50.rrd
+    python examples/list_wrong_loops.py kitti00_ilv.rrd
 
-For every constraint that the rank-1 hypothesis accepted although the log's labels (or ground
-truth) say it is false, it prints the frames it joins, the frame at which it was first accepted and
-the frame at which it was dropped again (if ever), read from the ``/events`` text log; then the
-true loops that were never accepted. The same facts are what the viewer shows: red segments in the
-map (state "accepted but truly false"), WARN lines in the Events panel.
+It reads the run record the replay stored in the recording (``lcv_replay.report.rrd``: the fate of
+every constraint, as ``--export DIR`` writes it to ``loops.csv``) and prints the constraints the
+final estimate accepted although the log's labels (or ground truth) say they are false, the ones
+accepted for a while and then dropped, and the true loops that were not accepted. The viewer shows
+the same facts: red segments on the map, ``WRONG`` rows in the Events table.
 """
 
 from __future__ import annotations
 
-import re
 import sys
-from collections import defaultdict
 from pathlib import Path
 
-import pyarrow as pa
-from rerun.chunk import RrdReader
-
-ACCEPTED = re.compile(r"constraint (\d+) \((\d+)↔(\d+)\) accepted at frame (\d+)")
-DROPPED = re.compile(r"constraint (\d+) \((\d+)↔(\d+)\) no longer accepted at frame (\d+)")
+from lcv_replay.errors import LcvError
+from lcv_replay.report.rrd import read_run_record
 
 
-def tables(path: Path) -> dict[str, pa.Table]:
-    """``{entity path: table}`` of a recording (chunks concatenated)."""
-    parts: dict[str, list[pa.Table]] = defaultdict(list)
-    for chunk in RrdReader(path).stream():
-        parts[chunk.entity_path].append(pa.Table.from_batches([chunk.to_record_batch()]))
-    return {entity: pa.concat_tables(p, promote_options="permissive") for entity, p in parts.items()}
-
-
-def col(table: pa.Table, suffix: str) -> list:
-    (name,) = [n for n in table.column_names if n.endswith(suffix)]
-    return table.column(name).to_pylist()
+def _history(loop) -> str:
+    parts = []
+    if loop.first_accepted_frame is not None:
+        parts.append(f"first accepted at frame {loop.first_accepted_frame}")
+    if loop.dropped_frame is not None:
+        parts.append(f"last dropped at frame {loop.dropped_frame}")
+    return ", ".join(parts) or "never accepted"
 
 
 def main(path: Path) -> int:
-    t = tables(path)
-    segments = t["/constraints/segments"]
-    frames = segments.column("frame").to_pylist()
-    last = max(range(len(frames)), key=lambda i: (frames[i] if col(segments, "constraint_id")[i] else -1, i))
-    ids = col(segments, "constraint_id")[last]
-    states = col(segments, "state")[last]
-    q, m = col(segments, "query_frame")[last], col(segments, "match_frame")[last]
-
-    accepted_at: dict[int, list[int]] = defaultdict(list)
-    dropped_at: dict[int, list[int]] = defaultdict(list)
-    events = t["/events"]
-    for frame, text in zip(events.column("frame").to_pylist(), col(events, "TextLog:text")):
-        line = text[0] if isinstance(text, list) else text
-        if (hit := ACCEPTED.match(line)) is not None:
-            accepted_at[int(hit[1])].append(frame)
-        elif (hit := DROPPED.match(line)) is not None:
-            dropped_at[int(hit[1])].append(frame)
-
-    def history(cid: int) -> str:
-        steps = sorted([(f, "accepted") for f in accepted_at[cid]] + [(f, "dropped") for f in dropped_at[cid]])
-        return ", ".join(f"{what} at frame {f}" for f, what in steps) or "never accepted"
-
-    print(f"{path}: {len(ids)} constraints at the last step (frame {frames[last]})")
-    wrong = [i for i, s in enumerate(states) if s == "accepted but truly false"]
-    print(f"\naccepted but truly false: {len(wrong)}")
-    for i in wrong:
-        print(f"  constraint {ids[i]:4d}  {q[i]:5d} ↔ {m[i]:5d}   {history(ids[i])}")
-    transient = sorted(cid for cid in accepted_at if cid in dropped_at)
-    print(f"\naccepted for a while, then dropped: {len(transient)}")
-    for cid in transient:
-        i = ids.index(cid)
-        print(f"  constraint {cid:4d}  {q[i]:5d} ↔ {m[i]:5d}   {states[i]:<32s} {history(cid)}")
-    missed = [i for i, s in enumerate(states) if s == "rejected but truly true (missed)"]
-    print(f"\ntrue loops never accepted at the end: {len(missed)}")
-    for i in missed:
-        print(f"  constraint {ids[i]:4d}  {q[i]:5d} ↔ {m[i]:5d}   {history(ids[i])}")
+    try:
+        record = read_run_record(path)
+    except LcvError as exc:
+        print(f"error: {exc.format()}", file=sys.stderr)
+        return 2
+    print(f"{path}: {record.method} on {Path(record.log).name}, {len(record.loops)} constraints, truth from {record.truth_source}")
+    groups = (
+        ("accepted but truly false", [l for l in record.loops if l.wrong]),
+        ("accepted for a while, then dropped", [l for l in record.loops if l.dropped_frame is not None]),
+        ("true loops not accepted at the end", [l for l in record.loops if l.missed]),
+    )
+    for title, loops in groups:
+        print(f"\n{title}: {len(loops)}")
+        for l in loops:
+            d2 = "" if l.d2 is None else f"d² {l.d2:10.4g}"
+            print(f"  constraint {l.constraint_id:4d}  {l.query_frame:5d} ↔ {l.match_frame:5d}  {l.state:<9s} {d2}  {_history(l)}")
+    first = record.first_wrong_acceptance()
+    if first is not None:
+        print(f"\nfirst wrong acceptance at frame {first.first_accepted_frame}: lcv-replay open {path} --frame {first.first_accepted_frame}")
     return 0
 
 

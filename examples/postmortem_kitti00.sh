@@ -12,11 +12,16 @@ mkdir -p "$OUT"
 lcv-replay record g2o "$DATA/kitti_00_alpha_0.50.g2o" -o "$OUT/kitti00_a050.mcap" --force
 
 # 2. Replay it with the paper's method and with the improved one (ilv+, the default).
-lcv-replay "$OUT/kitti00_a050.mcap" --method ilv --save "$OUT/kitti00_ilv.rrd" --summary-json "$OUT/kitti00_ilv.json"
-lcv-replay "$OUT/kitti00_a050.mcap" --method ilv+ --save "$OUT/kitti00_ilvplus.rrd" --summary-json "$OUT/kitti00_ilvplus.json"
+#    Each also writes its results for other tools (--export) and an HTML report (--report).
+lcv-replay "$OUT/kitti00_a050.mcap" --method ilv --save "$OUT/kitti00_ilv.rrd" --export "$OUT/kitti00_ilv" --report "$OUT/kitti00_ilv.html"
+lcv-replay "$OUT/kitti00_a050.mcap" --method ilv+ --save "$OUT/kitti00_ilvplus.rrd" --export "$OUT/kitti00_ilvplus" --report "$OUT/kitti00_ilvplus.html"
 
 # 3. The wrong loop closures, and when they entered, straight from the recording.
 python "$(dirname "$0")/list_wrong_loops.py" "$OUT/kitti00_ilv.rrd"
 
-# 4. Look at them: rerun "$OUT/kitti00_ilv.rrd"
-echo "open the recordings with: rerun $OUT/kitti00_ilv.rrd   (and $OUT/kitti00_ilvplus.rrd)"
+# 4. evo agrees with the summary's ATE (evo is in the test extra).
+if command -v evo_ape >/dev/null; then evo_ape tum "$OUT/kitti00_ilv/ground_truth.tum" "$OUT/kitti00_ilv/trajectory.tum" -a; fi
+
+# 5. Look at them: rerun "$OUT/kitti00_ilv.rrd", or at the first wrong acceptance:
+echo "open the recordings with: rerun $OUT/kitti00_ilv.rrd (and $OUT/kitti00_ilvplus.rrd),"
+echo "or at the first wrong acceptance: lcv-replay open $OUT/kitti00_ilv.rrd --first-wrong"

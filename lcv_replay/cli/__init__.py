@@ -16,6 +16,7 @@ from lcv_replay.cli import (  # noqa: E402,F401
     record,
     record_synthetic,
     replay,
+    report,
     vo,
 )
 

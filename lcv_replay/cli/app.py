@@ -69,7 +69,10 @@ def _root(
     version: bool = typer.Option(False, "--version", callback=_version_callback, is_eager=True, help="Print the version."),
 ) -> None:
     logging.basicConfig(
-        level=logging.DEBUG if verbose else logging.INFO,
+        level=logging.DEBUG if verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
+    if not verbose:  # our own INFO lines; other libraries' only from WARNING up (-v: everything)
+        for name in ("lcv_replay", "recorders"):
+            logging.getLogger(name).setLevel(logging.INFO)

@@ -10,7 +10,6 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
-import sys
 from pathlib import Path
 from typing import Optional
 
@@ -67,6 +66,8 @@ def demo_command(
     frames: int = typer.Option(DEMO_FRAMES, "--frames", min=50, help="Frames of the synthetic drive."),
     save: Path = typer.Option(Path("demo.rrd"), "--save", help="Rerun recording to write."),
     summary_json: Optional[Path] = typer.Option(None, "--summary-json", help="Also write the summary as JSON (docs/summary-json.md)."),
+    export: Optional[Path] = typer.Option(None, "--export", metavar="DIR", help="Write trajectories (TUM, KITTI), loops.csv, accepted.g2o, config.toml and summary.json into DIR."),
+    report: Optional[Path] = typer.Option(None, "--report", metavar="FILE.html", help="Write a self-contained HTML report of the run."),
     spawn: bool = typer.Option(False, "--spawn", help="Open a Rerun viewer and stream to it."),
     method: Optional[str] = typer.Option(None, "--method", "-m", help="Verifier (default: the config's)."),
     seed: int = typer.Option(DEMO_SEED, "--seed", help="Seed of the world, the route and the replay."),
@@ -82,11 +83,13 @@ def demo_command(
     check_output_path(save, force=True)
     if summary_json is not None:
         check_output_path(summary_json, force=True)
-    log_path = ensure_demo_log(frames, seed, DEMO_WIDTH_PX, DEMO_HEIGHT_PX, rerecord=rerecord, quiet=quiet)
     config = ReplayConfig()
     outputs = RerunOutputs(save=save, spawn=spawn)
-    sinks = build_sinks(rerun_config=config.rerun, outputs=outputs, summary_json=summary_json, quiet=quiet)
+    # Every output is checked before the (possibly long) recording of the world.
+    build_sinks(rerun_config=config.rerun, outputs=None, summary_json=summary_json, quiet=True, export=export, report=report)
+    log_path = ensure_demo_log(frames, seed, DEMO_WIDTH_PX, DEMO_HEIGHT_PX, rerecord=rerecord, quiet=quiet)
+    sinks = build_sinks(rerun_config=config.rerun, outputs=outputs, summary_json=summary_json, quiet=quiet,
+                        export=export, report=report)
     summary = replay(ReplayOptions(log_path=log_path, config=config, method=method, seed=seed), sinks)
-    typer.echo(f"\nopen the recording with:  rerun {save}")
     if summary.interrupted:
         raise typer.Exit(130)

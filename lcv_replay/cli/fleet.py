@@ -54,7 +54,6 @@ def batch_command(
 
     from lcv_replay.config import load_config
     from lcv_replay.fleet.batch import BatchSpec, check_run_dir, run_batch
-    from lcv_replay.fleet.task import post_mortem_unavailable
     from lcv_replay.fleet.engine import Cluster
     from lcv_replay.fleet.inputs import discover_logs
     from lcv_replay.replay import ReplayOptions, StopToken, sigint_requests_stop
@@ -62,8 +61,6 @@ def batch_command(
 
     # Everything that can be refused is refused before a file is written or Ray is started.
     spec_cluster = cluster_options(address, workers, cpus_per_task, max_retries)
-    if export or report:
-        raise post_mortem_unavailable("--export" if export else "--report")
     replay_config = load_config(config)
     options = ReplayOptions(log_path=Path("."), config=replay_config, method=method, seed=seed,
                             constraints=None if constraints is None else constraints.value, rate=None)

@@ -47,13 +47,17 @@ def default_save_path(log_path: Path, name: str | None = None) -> Path:
     return Path.cwd() / beside.name
 
 
-def build_sinks(*, rerun_config, outputs, summary_json: Optional[Path], quiet: bool) -> list:
-    """The sinks of one replay, in call order: progress, Rerun, summary, (serve until Ctrl-C).
+def build_sinks(*, rerun_config, outputs, summary_json: Optional[Path], quiet: bool,
+                export: Optional[Path] = None, report: Optional[Path] = None) -> list:
+    """The sinks of one replay, in call order: progress, run record, Rerun, summary, export,
+    report, (serve until Ctrl-C). Every output path is checked here, before any work starts.
 
     Args:
         rerun_config: the config's ``[rerun]`` section.
         outputs: a :class:`~lcv_replay.sinks.config.RerunOutputs`, or ``None`` for no Rerun output.
+        export: ``--export DIR``; report: ``--report FILE.html``.
     """
+    from lcv_replay.sinks.run_record import RunRecorder
     from lcv_replay.sinks.summary import SummarySink
 
     sinks: list = []
@@ -61,13 +65,23 @@ def build_sinks(*, rerun_config, outputs, summary_json: Optional[Path], quiet: b
         from lcv_replay.sinks.progress import ProgressSink
 
         sinks.append(ProgressSink())
+    recorder = RunRecorder()
+    sinks.append(recorder)
     rerun_sink = None
     if outputs is not None and outputs.any:
         from lcv_replay.sinks.rerun_sink import RerunSink
 
         rerun_sink = RerunSink(rerun_config, outputs)
         sinks.append(rerun_sink)
-    sinks.append(SummarySink(stream=sys.stdout, json_path=summary_json))
+    sinks.append(SummarySink(stream=sys.stdout, json_path=summary_json, recorder=recorder))
+    if export is not None:
+        from lcv_replay.export.sink import ExportSink
+
+        sinks.append(ExportSink(recorder, export, stream=sys.stdout))
+    if report is not None:
+        from lcv_replay.report.sink import ReportSink
+
+        sinks.append(ReportSink(recorder, report, stream=sys.stdout))
     if rerun_sink is not None and outputs.serve:
         sinks.append(_ServeUntilInterrupted(rerun_sink))
     return sinks
@@ -128,6 +142,8 @@ def replay_command(
     image_every: Optional[int] = typer.Option(None, "--image-every", min=0, help="Log the camera image every k-th frame (0: never; default: the config's rerun.image_every)."),
     no_rerun: bool = typer.Option(False, "--no-rerun", help="No Rerun output at all (summary only)."),
     summary_json: Optional[Path] = typer.Option(None, "--summary-json", help="Also write the summary as JSON (keys: docs/summary-json.md)."),
+    export: Optional[Path] = typer.Option(None, "--export", metavar="DIR", help="Write the results for other tools into DIR (created if missing): trajectory.tum/.kitti, odometry.tum, ground_truth.tum, loops.csv, accepted.g2o, config.toml, summary.json."),
+    report: Optional[Path] = typer.Option(None, "--report", metavar="FILE.html", help="Write a self-contained HTML report of the run (also later: 'lcv-replay report REC.rrd')."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
     recover: bool = typer.Option(False, "--recover", help="Read the complete chunks of a truncated log."),
     follow: bool = typer.Option(False, "--follow", help="Follow a log that is still being written (record ... --live): read each chunk as it lands; end at its footer, after --idle-timeout without growth, or on Ctrl-C."),
@@ -183,7 +199,8 @@ def replay_command(
             spawn=spawn, connect=connect, serve=serve, grpc_port=grpc_port, web_port=web_port,
             memory_limit=memory_limit,
         )
-    sinks = build_sinks(rerun_config=replay_config.rerun, outputs=outputs, summary_json=summary_json, quiet=quiet)
+    sinks = build_sinks(rerun_config=replay_config.rerun, outputs=outputs, summary_json=summary_json, quiet=quiet,
+                        export=export, report=report)
     try:
         summary = replay(options, sinks, stop=stop)
     except KeyboardInterrupt:  # before the first frame (a follower waiting for the recorder)

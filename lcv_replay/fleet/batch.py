@@ -45,7 +45,6 @@ from lcv_replay.fleet.task import (
     LogOutcome,
     attempts_so_far,
     clear_outputs,
-    post_mortem_unavailable,
     run_log,
 )
 
@@ -401,8 +400,6 @@ def run_batch(
     """
     from lcv_replay.config import to_dict
 
-    if spec.export or spec.report:
-        raise post_mortem_unavailable("--export" if spec.export else "--report")
     check_run_dir(spec.run_dir)
     spec.run_dir.mkdir(parents=True, exist_ok=True)
     state = BatchState(spec, config_hash(spec.options), to_dict(spec.options.resolved_config()), cluster.describe())

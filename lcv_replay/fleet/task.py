@@ -219,18 +219,19 @@ def _replay_into(job: LogJob, *, host: str, pid: int, attempts: int, threads: di
     return document
 
 
-def post_mortem_unavailable(flag: str) -> LcvError:
-    """The error for ``--export``/``--report`` while the export and report modules are not in this build."""
-    from lcv_replay.errors import NotImplementedYetError
-
-    return NotImplementedYetError(
-        f"batch {flag} needs the export and report modules (issue 11), which are not in this build yet",
-        fix="run the batch without it, then 'lcv-replay LOG.mcap --export/--report' per log once available",
-    )
-
-
 def _post_mortem_sinks(job: LogJob) -> list:
-    """The export and report sinks (issue 11); refused up front by the CLI until they exist."""
-    if job.export or job.report:
-        raise post_mortem_unavailable("--export" if job.export else "--report")
-    return []
+    """The run recorder with the export and report sinks (``logs/<name>/export/``, ``report.html``),
+    as ``lcv-replay LOG --export --report`` builds them."""
+    if not (job.export or job.report):
+        return []
+    from lcv_replay.export.sink import ExportSink
+    from lcv_replay.report.sink import ReportSink
+    from lcv_replay.sinks.run_record import RunRecorder
+
+    recorder = RunRecorder()
+    sinks: list = [recorder]
+    if job.export:
+        sinks.append(ExportSink(recorder, job.out_dir / EXPORT))
+    if job.report:
+        sinks.append(ReportSink(recorder, job.out_dir / REPORT))
+    return sinks

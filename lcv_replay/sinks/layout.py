@@ -6,6 +6,7 @@ directly. Poses are ``(N, 3)`` float64 ``[x_m, y_m, yaw_rad]``; positions ``(N, 
 
 from __future__ import annotations
 
+import math
 from enum import IntEnum
 from typing import Any, Mapping, Sequence
 
@@ -31,19 +32,19 @@ class ConstraintState(IntEnum):
         return self in (ConstraintState.ACCEPTED, ConstraintState.ACCEPTED_FALSE)
 
 
-#: Label and RGBA colour of each state, for the annotation context (legend) of ``/constraints``.
-#: What needs attention is opaque (accepted, wrongly accepted, missed); the rest is faint, so that
-#: thousands of correctly rejected retrieval candidates do not hide the map.
+#: Label and RGBA colour of each state, for the annotation context of ``/constraints`` and the
+#: legend. What needs attention is opaque (accepted, wrongly accepted, missed); the rest is faint,
+#: so that thousands of correctly rejected retrieval candidates never hide the map.
 STATE_STYLE: dict[ConstraintState, tuple[str, tuple[int, int, int, int]]] = {
-    ConstraintState.PENDING: ("pending (not judged yet)", (220, 220, 220, 40)),
+    ConstraintState.PENDING: ("pending (not judged yet)", (220, 220, 220, 45)),
     ConstraintState.ACCEPTED: ("accepted", (40, 200, 80, 255)),
-    ConstraintState.REJECTED: ("rejected", (120, 120, 150, 50)),
-    ConstraintState.ACCEPTED_FALSE: ("accepted but truly false", (240, 30, 30, 255)),
+    ConstraintState.REJECTED: ("rejected", (150, 150, 170, 30)),
+    ConstraintState.ACCEPTED_FALSE: ("accepted but truly false", (255, 45, 45, 255)),
     ConstraintState.REJECTED_TRUE: ("rejected but truly true (missed)", (250, 170, 30, 255)),
-    ConstraintState.REJECTED_FALSE: ("rejected, truly false", (170, 80, 110, 30)),
+    ConstraintState.REJECTED_FALSE: ("rejected, truly false", (150, 150, 170, 30)),
 }
 #: Line width of each state in UI points (index = state value): faint states thin, wrong ones thick.
-STATE_WIDTH_PT = (0.5, 1.0, 0.5, 2.5, 1.5, 0.5)
+STATE_WIDTH_PT = (0.5, 1.5, 0.4, 3.0, 2.0, 0.4)
 
 
 def constraint_states(
@@ -205,17 +206,6 @@ def segments(positions: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     return np.stack([positions[pairs[:, 0]], positions[pairs[:, 1]]], axis=1)
 
 
-def consistency_rows(shape: tuple[int, int], *, min_rows: int, max_cells: int) -> int:
-    """How many rows (hypotheses, best first) of an ``(H, C)`` consistency matrix to log.
-
-    All rows while ``H × C <= max_cells``; otherwise as many as fit, but at least ``min_rows``.
-    """
-    h, c = shape
-    if h * c <= max_cells or c == 0:
-        return h
-    return min(h, max(min_rows, max_cells // c))
-
-
 def _fmt(value: Any, digits: int = 3) -> str:
     if value is None:
         return "—"
@@ -225,26 +215,36 @@ def _fmt(value: Any, digits: int = 3) -> str:
 
 
 def hypotheses_markdown(
-    ranking: Sequence[HypothesisSummary], constraints: Sequence[Constraint], *, top: int
+    ranking: Sequence[HypothesisSummary], constraints: Sequence[Constraint], *, top: int,
+    truth: Sequence[bool | None] = (), key_name: str | None = None,
 ) -> str:
-    """Markdown table of the top hypotheses with the constraint sequence that built each."""
+    """Markdown table of the top hypotheses with the constraint sequence that built each.
+
+    ``key_name``: where hypotheses are ranked by something other than their score (``ilv+``), the
+    key's name; its column then comes right after the rank, so that the order is visibly the key's.
+    Constraints labelled false are marked ``✗``.
+    """
+    keyed = key_name is not None and any(h.rank_key != float(h.score) for h in ranking[:top])
+    key_head, key_align = (f" {key_name} |", "---:|") if keyed else ("", "")
     lines = [
-        "| rank | hypothesis | parent | score | χ² | window | constraints (id: query↔match, in order) |",
-        "|---:|---:|---:|---:|---:|---:|---|",
+        f"| rank |{key_head} hypothesis | parent | score | χ² | window | constraints (id: query↔match, in order; ✗ false) |",
+        f"|---:|{key_align}---:|---:|---:|---:|---:|---|",
     ]
     for h in ranking[:top]:
         seq = ", ".join(
             f"{cid}: {constraints[cid].query_frame}↔{constraints[cid].match_frame}"
+            + (" ✗" if cid < len(truth) and truth[cid] is False else "")
             if 0 <= cid < len(constraints)
             else str(cid)
             for cid in h.constraint_ids
         )
         parent = "root" if h.parent_id is None else f"#{h.parent_id}"
+        key = f" {h.rank_key:.1f} |" if keyed else ""
         lines.append(
-            f"| {h.rank} | #{h.id} | {parent} | {h.score} | {_fmt(h.chi2, 1)} | {h.window} | {seq or '(odometry only)'} |"
+            f"| {h.rank} |{key} #{h.id} | {parent} | {h.score} | {_fmt(h.chi2, 1)} | {h.window} | {seq or '(odometry only)'} |"
         )
     if not ranking:
-        lines.append("| — | — | — | — | — | — | (this method keeps no hypotheses) |")
+        lines.append("| — |" + (" — |" if keyed else "") + " — | — | — | — | — | (this method keeps no hypotheses) |")
     return "\n".join(lines)
 
 
@@ -285,3 +285,126 @@ def flatten(mapping: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
         else:
             out[name] = value
     return out
+
+
+# --------------------------------------------------------------------------------------- panels
+def deciding_constraints(consistency: np.ndarray, *, rows: int, max_columns: int, context: int = 5) -> np.ndarray:
+    """The constraints that decide between the top hypotheses, ordered so that structure shows.
+
+    The paper's Fig. W: of an ``(H, C)`` consistency matrix (rows in rank order), the top ``rows``
+    hypotheses × at most ``max_columns`` constraints. When there are more constraints than fit,
+    the ones on which the top hypotheses disagree are kept, those that separate rank 1 from rank 2
+    first (then from rank 3, ...); free columns are filled with constraints every top hypothesis
+    holds. The kept columns are sorted by their pattern down the rows (rank 1 most significant),
+    so that the blocks of constraints each hypothesis holds show as blocks.
+
+    Returns:
+        ``(D,)`` int64 constraint ids (column indices), ``D <= max_columns``.
+    """
+    m = np.asarray(consistency, dtype=bool)[:rows]
+    if m.ndim != 2 or m.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    k, c = m.shape
+    columns = np.arange(c, dtype=np.int64)
+    if c > max_columns:
+        differs = m != m[:1]
+        deciding = np.flatnonzero(differs.any(axis=0))
+        first = differs[:, deciding].argmax(axis=0)  # the first rank that disagrees with rank 1
+        keep = deciding[np.lexsort((deciding, first))][:max_columns]
+        held = np.flatnonzero(m.all(axis=0))
+        room = max_columns - len(keep) if len(keep) == 0 else min(context, max_columns - len(keep))
+        keep = np.concatenate([keep, held[:room]])
+        columns = keep
+    sub = m[:, columns]
+    # Sort by the column pattern, rank 1 as the most significant row, then by id.
+    order = np.lexsort((columns, *[~sub[r] for r in range(k - 1, -1, -1)]))
+    return columns[order]
+
+
+def ancestry(tree: Mapping[int, tuple[int | None, int | None, int]], leaves: Sequence[int]) -> list[int]:
+    """Ids of ``leaves`` and all their ancestors in ``tree`` (``{id: (parent, constraint, window)}``),
+    sorted; a parent missing from ``tree`` ends the chain."""
+    seen: set[int] = set()
+    for leaf in leaves:
+        node: int | None = int(leaf)
+        while node is not None and node not in seen and node in tree:
+            seen.add(node)
+            node = tree[node][0]
+    return sorted(seen)
+
+
+def tree_layout(nodes: Sequence[int], parents: Mapping[int, int | None], leaves: Sequence[int],
+                *, dx: float = 120.0, dy: float = 40.0) -> dict[int, tuple[float, float]]:
+    """Positions of a generation tree drawn left to right: x = depth, leaves stacked in the order
+    given (rank order), each parent at the mean height of its children.
+
+    Args:
+        nodes: the node ids to place (an ancestry, see :func:`ancestry`).
+        parents: parent id of each node (``None`` or absent from ``nodes``: a root).
+        leaves: the nodes to stack first, top to bottom (the current top hypotheses by rank).
+    """
+    node_set = set(int(n) for n in nodes)
+    children: dict[int, list[int]] = {n: [] for n in node_set}
+    roots = []
+    for n in sorted(node_set):
+        p = parents.get(n)
+        if p is not None and p in node_set and p != n:
+            children[p].append(n)
+        else:
+            roots.append(n)
+    rank = {int(leaf): i for i, leaf in enumerate(leaves)}
+
+    memo_rank: dict[int, float] = {}
+    for n in sorted(node_set, reverse=True):  # children have larger ids than parents
+        memo_rank[n] = min([rank.get(n, math.inf)] + [memo_rank.get(ch, math.inf) for ch in children[n]])
+    positions: dict[int, tuple[float, float]] = {}
+    row = [0]
+
+    def place(n: int, depth: int) -> float:
+        kids = sorted(children[n], key=lambda ch: (memo_rank.get(ch, math.inf), ch))
+        if not kids:
+            y = row[0] * dy
+            row[0] += 1
+        else:
+            y = float(np.mean([place(ch, depth + 1) for ch in kids]))
+        positions[n] = (depth * dx, y)
+        return y
+
+    for root in sorted(roots, key=lambda r: (memo_rank.get(r, math.inf), r)):
+        place(root, 0)
+    return positions
+
+
+def compress_chains(parents: Mapping[int, int | None], added: Mapping[int, int | None], keep: Sequence[int]
+                    ) -> tuple[dict[int, int | None], dict[int, tuple[int, ...]]]:
+    """Collapse the linear stretches of a generation tree, so that a deep ancestry stays readable.
+
+    A node that is not in ``keep``, has a parent and exactly one child is removed; its child is
+    attached to its parent and inherits the constraint it added.
+
+    Args:
+        parents: parent of each node (``None``: a root).
+        added: the constraint each node's parent was extended by (``None``: unknown / root).
+        keep: nodes never removed (the current top hypotheses).
+
+    Returns:
+        ``(parents, added_chain)``: the compressed tree, and per node the constraints added along
+        the edge from its (new) parent, oldest first.
+    """
+    children: dict[int, list[int]] = {n: [] for n in parents}
+    for n, p in parents.items():
+        if p is not None and p in children:
+            children[p].append(n)
+    keep_set = set(int(k) for k in keep)
+    new_parent = dict(parents)
+    chain: dict[int, tuple[int, ...]] = {n: (() if added.get(n) is None else (int(added[n]),)) for n in parents}
+    for n in sorted(parents):  # parents before children (ids grow with generation)
+        p = new_parent.get(n)
+        if n in keep_set or p is None or p not in new_parent or len(children[n]) != 1:
+            continue
+        (child,) = children[n]
+        new_parent[child] = p
+        chain[child] = chain[n] + chain[child]
+        children[p] = [child if c == n else c for c in children[p]]
+        del new_parent[n], chain[n]
+    return new_parent, chain

@@ -35,20 +35,24 @@ from lcv_replay.errors import OutputError
 from lcv_replay.fileio import check_output_path
 from lcv_replay.sinks import blueprint as bp
 from lcv_replay.sinks.base import BaseSink, FrameUpdate, RetrievalUpdate, RunStart, RunSummary, StepUpdate
+from lcv_replay.sinks.run_record import RunRecorder, consistency_snapshot, grow_tree
 from lcv_replay.sinks.layout import (
     STATE_STYLE,
     STATE_WIDTH_PT,
     ConstraintState,
     GrowingRows,
     MapEstimate,
+    _fmt,
+    ancestry,
     anchor_to_first,
-    consistency_rows,
+    compress_chains,
     constraint_states,
     flatten,
     hypotheses_markdown,
     key_value_markdown,
     retrieval_markdown,
     segments,
+    tree_layout,
 )
 
 logger = logging.getLogger(__name__)
@@ -61,17 +65,18 @@ COLUMN_FLUSH_FRAMES = 50  # per-frame series are sent with send_columns every th
 PENDING_FULL_LIMIT = 500  # re-log the pending constraints at each arrival while there are this few
 PENDING_EVERY = 10  # ... else every this many frames
 PENDING_MAX_DRAWN = 300  # the newest pending constraints drawn (all of them are judged at the step)
-CONSISTENCY_MAX_CELLS = 1_000_000  # rows of the consistency tensor are cut to fit (best first)
-TREE_MAX_NODES = 5_000  # the generation tree keeps the newest nodes beyond this
 JPEG_QUALITY = 85
 DETERMINISTIC_FLUSH_TICK_S = 1e6  # "never": file-only recordings flush on size and at explicit points
 LIVE_REFRESH_S = 0.25  # with a viewer watching, buffered rows and the map are sent at least this often
 
-#: Drawing priority of each ConstraintState (index = state value): what needs attention on top.
-DRAW_PRIORITY = np.array([0, 2, 0, 4, 3, 0])
+TREE_DX, TREE_DY = 150.0, 40.0  # generation-tree layout: depth step and row step (graph view units)
+REJECTED_MAX_DRAWN = 400  # rejected candidates drawn per step (evenly over their ids); all are in /postmortem
 _LINE = rr.Radius.ui_points(1.0)
-_THICK = rr.Radius.ui_points(2.5)
+_FAINT_LINE = rr.Radius.ui_points(0.75)
+_THICK = rr.Radius.ui_points(2.0)
 _RANK1_COLOR = (255, 200, 0)
+_AMBIGUOUS_COLOR = (190, 90, 250)
+_CELL_OFF, _CELL_TRUE, _CELL_FALSE, _CELL_UNKNOWN = (45, 45, 50), (40, 200, 80), (255, 45, 45), (80, 140, 250)
 
 
 class _Columns:
@@ -147,6 +152,26 @@ class _RetrievalColumns:
             *rr.AnyValues.columns(match_frame=np.concatenate(self._matches), l2_distance=np.concatenate(self._l2)).partition(lengths),
         ])
         self.__init__(int(self._format.width), self._top_k)
+
+
+def _any_values(**columns: Any) -> rr.AnyValues:
+    """``rr.AnyValues`` that keeps empty columns (typed Arrow arrays: numpy dtypes, or strings for
+    lists), so that "no instance at this step" is logged rather than silently dropped. NaN in a
+    float column is stored as null (a missing value compares equal to itself across recordings)."""
+    import pyarrow as pa
+
+    typed = {}
+    for name, value in columns.items():
+        if isinstance(value, np.ndarray) and value.dtype.kind == "f":
+            missing = np.isnan(value)  # null, with a zero in the data buffer (bitwise-equal runs)
+            typed[name] = pa.array(np.where(missing, 0.0, value).astype(value.dtype), mask=missing)
+        elif isinstance(value, np.ndarray):
+            typed[name] = pa.array(value)
+        elif isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value):
+            typed[name] = pa.array(list(value), type=pa.string())
+        else:
+            typed[name] = value
+    return rr.AnyValues(**typed)
 
 
 def _indexes(rows: Sequence[tuple]) -> list:
@@ -250,6 +275,10 @@ class RerunSink(BaseSink):
         self._stamps: list[int] = []  # log_time of each frame, by index
         self._stages: list[str] | None = None  # verifier stage names of /metrics/stage_time_s
         self._last_refresh = time.monotonic()
+        self._recorder = RunRecorder()  # the run record, stored under /postmortem at the end
+        self._wrong_seen = False  # a false acceptance was bookmarked
+        self._missed_seen = False  # a missed true loop was bookmarked
+        self._drawn_rejected = (0, 0)  # rejected constraints drawn / judged at the last step
 
     @property
     def recording_path(self) -> Path | None:  # type: ignore[override]
@@ -258,6 +287,7 @@ class RerunSink(BaseSink):
     # ------------------------------------------------------------------ set-up
     def on_start(self, start: RunStart) -> None:
         self._start = start
+        self._recorder.on_start(start)
         # No automatic properties: their start time is the wall clock; ours is the log's (below).
         # A file-only recording is batched by size alone (no wall-clock flush tick), so that the same
         # log, config and seed give the same chunks; live viewers keep Rerun's default tick.
@@ -282,8 +312,12 @@ class RerunSink(BaseSink):
             grpc_url = f"rerun+http://127.0.0.1:{self.outputs.grpc_port}/proxy"
             sinks.append(rr.GrpcSink(grpc_url))
             self.served_url = web_viewer_url(self.outputs.web_port, grpc_url)
-        blueprint = bp.default_blueprint(has_images=start.has_images, has_retrieval=start.code_bits is not None)
-        rec.set_sinks(*sinks, default_blueprint=blueprint)
+        blueprint = bp.default_blueprint(has_images=start.has_images, has_retrieval=start.code_bits is not None,
+                                         frames=start.frames, method=start.method)
+        rec.set_sinks(*sinks)
+        # Active, not only default: a viewer that kept another layout for this application id
+        # (an older recording, a user's rearrangement) still opens this recording on the answer.
+        rec.send_blueprint(blueprint, make_active=True, make_default=True)
         rec.send_recording_name(f"{start.log_path.name} · {start.method}")
         rec.send_recording_start_time_nanos(int(start.start_ns))
         self._log_static(start)
@@ -302,8 +336,28 @@ class RerunSink(BaseSink):
         )
         rec.log(bp.REPORT, rr.TextDocument(self._report_markdown(None), media_type=rr.MediaType.MARKDOWN), static=True)
         # Styles of the column-logged entities, static (rows carry only the data).
-        rec.log(bp.RETRIEVAL_LINES, rr.LineStrips2D.from_fields(radii=[_LINE], colors=[(60, 140, 250)], show_labels=False), static=True)
-        rec.log(bp.CONSTRAINTS_PENDING, rr.LineStrips2D.from_fields(radii=[rr.Radius.ui_points(STATE_WIDTH_PT[ConstraintState.PENDING])], class_ids=[int(ConstraintState.PENDING)], show_labels=False), static=True)
+        rec.log(bp.RETRIEVAL_LINES, rr.LineStrips2D.from_fields(radii=[_LINE], colors=[(60, 140, 250)], show_labels=False,
+                                                                draw_order=bp.DRAW_ORDER[bp.RETRIEVAL_LINES]), static=True)
+        S = ConstraintState
+        for path, state in ((bp.CONSTRAINTS_PENDING, S.PENDING), (bp.CONSTRAINTS_ACCEPTED, S.ACCEPTED),
+                            (bp.CONSTRAINTS_WRONG, S.ACCEPTED_FALSE), (bp.CONSTRAINTS_MISSED, S.REJECTED_TRUE),
+                            (bp.CONSTRAINTS_REJECTED, S.REJECTED_FALSE)):
+            rec.log(path, rr.LineStrips2D.from_fields(radii=[rr.Radius.ui_points(STATE_WIDTH_PT[state])], show_labels=False,
+                                                      draw_order=bp.DRAW_ORDER[path]), static=True)
+        for path, colour in ((bp.TRUTH_WRONG, (255, 45, 45, 150)), (bp.TRUTH_MISSED, (250, 170, 30, 150))):
+            rec.log(path, rr.LineStrips2D.from_fields(radii=[rr.Radius.ui_points(1.0)], colors=[colour], show_labels=False,
+                                                      draw_order=bp.DRAW_ORDER[path]), static=True)
+        rec.log(bp.CONSTRAINTS_AMBIGUOUS, rr.LineStrips2D.from_fields(radii=[rr.Radius.ui_points(2.0)], colors=[_AMBIGUOUS_COLOR],
+                                                                      show_labels=False, draw_order=bp.DRAW_ORDER[bp.CONSTRAINTS_AMBIGUOUS]), static=True)
+        for path, colour, radius, label in (
+            (bp.TRAJ_ODOMETRY, (150, 150, 150, 170), _LINE, "odometry"),
+            (bp.TRAJ_GROUND_TRUTH, (90, 200, 255, 170), _LINE, "ground truth"),
+            (bp.TRAJ_BEST, _RANK1_COLOR, _THICK, "best estimate (rank-1 hypothesis)"),
+        ):
+            rec.log(path, rr.LineStrips2D.from_fields(colors=[colour], radii=[radius], labels=[label], show_labels=False,
+                                                      draw_order=bp.DRAW_ORDER[path]), static=True)
+        rec.log(bp.TRAJ_CURRENT, rr.Points2D.from_fields(colors=[(255, 255, 255)], radii=[rr.Radius.ui_points(4.0)],
+                                                         draw_order=bp.DRAW_ORDER[bp.TRAJ_CURRENT]), static=True)
         for name, color in (("precision", (40, 200, 80)), ("recall", (60, 140, 250)), ("ate_rmse_m", (240, 90, 40))):
             rec.log(bp.metric_path(name), rr.SeriesLines(colors=[color], names=[name]), static=True)
         if start.ground_truth is not None and len(start.ground_truth):
@@ -316,7 +370,7 @@ class RerunSink(BaseSink):
         self._rec.set_time(bp.LOG_TIME_TIMELINE, timestamp=np.datetime64(int(stamp_ns), "ns"))
 
     def on_frame(self, update: FrameUpdate) -> None:
-        rec = self._rec
+        self._recorder.on_frame(update)
         frame = update.frame
         self._set_time(frame.index, frame.stamp_ns)
         self._stamps.append(int(frame.stamp_ns))
@@ -395,14 +449,26 @@ class RerunSink(BaseSink):
     def _log_trajectories(self) -> None:
         rec = self._rec
         n = self._map.frames
-        rec.log(bp.TRAJ_ODOMETRY, rr.LineStrips2D([self._map.odometry[:, :2]], radii=_LINE, colors=[(150, 150, 150)], labels=["odometry"], show_labels=False))
-        rec.log(bp.TRAJ_BEST, rr.LineStrips2D([self._map.poses()[:, :2]], radii=_THICK, colors=[_RANK1_COLOR], labels=["best estimate"], show_labels=False))
-        if self._gt_rows:  # drawn from the odometry's first pose, so the drift shows as their separation
-            gt = anchor_to_first(np.asarray(self._gt_rows[:n]), self._map.odometry[0])
-            rec.log(bp.TRAJ_GROUND_TRUTH, rr.LineStrips2D([gt[:, :2]], radii=_LINE, colors=[(90, 200, 255)], labels=["ground truth"], show_labels=False))
+        rec.log(bp.TRAJ_ODOMETRY, rr.LineStrips2D([self._map.odometry[:, :2]]))
+        rec.log(bp.TRAJ_BEST, rr.LineStrips2D([self._map.poses()[:, :2]]))
+        truth = self._truth_display()
+        if truth is not None:  # drawn from the odometry's first pose, so the drift shows as their separation
+            rec.log(bp.TRAJ_GROUND_TRUTH, rr.LineStrips2D([truth[:n, :2]]))
+
+    def _truth_display(self) -> np.ndarray | None:
+        """``(N, 3)`` ground truth of the frames so far moved onto the odometry's first pose (NaN
+        rows where unknown), or ``None`` without ground truth."""
+        n = self._map.frames
+        if not self._gt_rows or n == 0:
+            return None
+        rows = np.asarray(self._gt_rows[:n], dtype=np.float64)
+        if len(rows) < n:
+            rows = np.vstack([rows, np.full((n - len(rows), 3), np.nan)])
+        return anchor_to_first(rows, self._map.odometry[0])
 
     # ------------------------------------------------------------------ retrieval
     def on_retrieval(self, update: RetrievalUpdate) -> None:
+        self._recorder.on_retrieval(update)
         frame = update.frame
         if update.code is None:  # warming up: no query was made
             return
@@ -426,6 +492,7 @@ class RerunSink(BaseSink):
 
     # ------------------------------------------------------------------ verifier steps
     def on_step(self, update: StepUpdate) -> None:
+        self._recorder.on_step(update)
         rec = self._rec
         step = update.step
         self._set_time(step.frame_index, self._stamps[min(step.frame_index, len(self._stamps) - 1)])
@@ -450,29 +517,11 @@ class RerunSink(BaseSink):
         if top_traj is not None:
             self._map.set_best(top_traj)
 
-        # Constraints, coloured by state on that map.
+        # Constraints on that map, one entity per verdict (drawn in DRAW_ORDER: the verdict on top).
         self._judged = len(constraints)
         states = constraint_states(len(constraints), step.accepted_constraint_ids, truth)
-        if constraints:
-            # Instances in drawing order: faint states first, wrong acceptances last (on top).
-            order = np.argsort(DRAW_PRIORITY[states], kind="stable")
-            picked = [constraints[i] for i in order]
-            drawn = states[order]
-            pairs = np.array([(c.query_frame, c.match_frame) for c in picked], dtype=np.int64)
-            positions = self._map.poses()[:, :2]
-            # Negative radii are UI points (rr.Radius.ui_points): faint states thin, wrong loops thick.
-            radii = -np.asarray(STATE_WIDTH_PT, dtype=np.float32)[drawn]
-            rec.log(
-                bp.CONSTRAINTS_SEGMENTS,
-                rr.LineStrips2D(segments(positions, pairs), radii=radii, class_ids=drawn.astype(np.uint16), show_labels=False),
-                rr.AnyValues(
-                    constraint_id=np.array([c.id for c in picked], dtype=np.int64),
-                    query_frame=pairs[:, 0],
-                    match_frame=pairs[:, 1],
-                    similarity=np.array([c.candidate.similarity for c in picked], dtype=np.float64),
-                    state=[STATE_STYLE[ConstraintState(int(s))][0] for s in drawn],
-                ),
-            )
+        ambiguous = {int(i) for i in step.ambiguous_constraint_ids}
+        self._log_constraints(constraints, states, ambiguous)
         rec.log(bp.CONSTRAINTS_PENDING, rr.Clear(recursive=False))
 
         # Hypotheses: ranks, top-k trajectories, consistency, tree, sequences.
@@ -480,91 +529,198 @@ class RerunSink(BaseSink):
             values = _rank_values(ranking)
             rec.log(bp.HYPOTHESES_RANKS, rr.BarChart(values, color=_RANK1_COLOR),
                     rr.AnyValues(hypothesis_id=np.array([h.id for h in ranking], dtype=np.int64),
-                                 score=np.array([h.score for h in ranking], dtype=np.int64)))
+                                 score=np.array([h.score for h in ranking], dtype=np.int64),
+                                 rank_key=np.array([h.rank_key for h in ranking], dtype=np.float64)))
             strips, labels, colors = [], [], []
             for h in ranking[:top_k]:
                 traj = step.trajectories.get(h.id)
-                if traj is None or len(traj) == 0:
+                if traj is None or len(traj) == 0 or h.rank == 1:  # rank 1 is the best estimate itself
                     continue
                 strips.append(np.asarray(traj)[:, :2])
-                labels.append(f"#{h.rank} H{h.id} ({h.score})")
-                colors.append(_RANK1_COLOR if h.rank == 1 else _rank_color(h.rank, top_k))
-            if strips:
-                rec.log(bp.HYPOTHESES_TRAJECTORIES, rr.LineStrips2D(strips, labels=labels, colors=colors, radii=_LINE))
-        consistency = np.asarray(step.consistency)
-        if consistency.ndim == 2 and consistency.size:
-            rows = consistency_rows(consistency.shape, min_rows=top_k, max_cells=CONSISTENCY_MAX_CELLS)
-            rec.log(bp.HYPOTHESES_CONSISTENCY, rr.Tensor(consistency[:rows].astype(np.uint8), dim_names=("hypothesis_rank", "constraint_id"), value_range=(0.0, 1.0)))
-        self._log_tree(update)
-        rec.log(bp.HYPOTHESES_SEQUENCES, rr.TextDocument(hypotheses_markdown(ranking, constraints, top=top_k), media_type=rr.MediaType.MARKDOWN))
+                labels.append(f"#{h.rank} H{h.id} (score {h.score})")
+                colors.append(_rank_color(h.rank, top_k))
+            rec.log(bp.HYPOTHESES_TRAJECTORIES, rr.LineStrips2D(strips, labels=labels, colors=colors, radii=_FAINT_LINE,
+                                                                show_labels=False, draw_order=bp.DRAW_ORDER[bp.HYPOTHESES_TRAJECTORIES]))
+        self._log_consistency(step, truth)
+        self._log_tree(step, truth)
+        key_name = "TLS key" if self._start.method == "ilv+" else None
+        rec.log(bp.HYPOTHESES_SEQUENCES, rr.TextDocument(
+            hypotheses_markdown(ranking, constraints, top=top_k, truth=truth, key_name=key_name), media_type=rr.MediaType.MARKDOWN))
 
         self._log_events(update, states)
+        self._log_legend(states, ambiguous)
         self._log_metrics(update)
         self._log_trajectories()
         self._flush_columns()
 
-    def _log_tree(self, update: StepUpdate) -> None:
-        step = update.step
-        for h in step.new_hypotheses:
-            self._tree.setdefault(h.id, (h.parent_id, None, h.window))
-        for parent, child, cid in step.generation_edges:
-            _, _, window = self._tree.get(child, (parent, cid, step.window_index))
-            self._tree[child] = (parent, cid, window)
-        if not self._tree and not step.ranking:
+    def _log_constraints(self, constraints: Sequence, states: np.ndarray, ambiguous: set[int]) -> None:
+        """Every judged constraint on the rank-1 map, split by verdict; the rejected ones thinned."""
+        positions = self._map.poses()[:, :2]
+        S = ConstraintState
+        groups = {
+            bp.CONSTRAINTS_ACCEPTED: states == S.ACCEPTED,
+            bp.CONSTRAINTS_WRONG: states == S.ACCEPTED_FALSE,
+            bp.CONSTRAINTS_MISSED: states == S.REJECTED_TRUE,
+            bp.CONSTRAINTS_REJECTED: (states == S.REJECTED) | (states == S.REJECTED_FALSE),
+        }
+        is_ambiguous = np.zeros(len(states), dtype=bool)
+        is_ambiguous[[i for i in ambiguous if 0 <= i < len(states)]] = True
+        groups = {path: mask & ~is_ambiguous for path, mask in groups.items()}
+        groups[bp.CONSTRAINTS_AMBIGUOUS] = is_ambiguous  # logged (empty) at every step: a flag can be lifted
+        for path, mask in groups.items():
+            ids = np.flatnonzero(mask)
+            if path == bp.CONSTRAINTS_REJECTED and len(ids) > REJECTED_MAX_DRAWN:
+                ids = ids[np.unique(np.linspace(0, len(ids) - 1, REJECTED_MAX_DRAWN).round().astype(np.int64))]
+            picked = [constraints[i] for i in ids]
+            pairs = np.array([(c.query_frame, c.match_frame) for c in picked], dtype=np.int64).reshape(-1, 2)
+            labels = [STATE_STYLE[ConstraintState(int(states[i]))][0] for i in ids]
+            if path == bp.CONSTRAINTS_AMBIGUOUS:
+                labels = ["ambiguous (flagged by the verifier)"] * len(ids)
+            self._rec.log(
+                path,
+                rr.LineStrips2D(segments(positions, pairs), class_ids=states[ids].astype(np.uint16)),
+                _any_values(
+                    constraint_id=np.array([c.id for c in picked], dtype=np.int64),
+                    query_frame=pairs[:, 0], match_frame=pairs[:, 1],
+                    similarity=np.array([c.candidate.similarity for c in picked], dtype=np.float64),
+                    state=labels,
+                ),
+            )
+        self._drawn_rejected = (int(min(groups[bp.CONSTRAINTS_REJECTED].sum(), REJECTED_MAX_DRAWN)), int(groups[bp.CONSTRAINTS_REJECTED].sum()))
+        truth = self._truth_display()
+        if truth is not None:  # the verdict's mistakes where the places really are
+            truth_xy = truth[:, :2]
+            for path, mask in ((bp.TRUTH_WRONG, groups[bp.CONSTRAINTS_WRONG]), (bp.TRUTH_MISSED, groups[bp.CONSTRAINTS_MISSED])):
+                picked = [constraints[i] for i in np.flatnonzero(mask)]
+                pairs = np.array([(c.query_frame, c.match_frame) for c in picked], dtype=np.int64).reshape(-1, 2)
+                ends = segments(truth_xy, pairs)
+                known = np.all(np.isfinite(ends), axis=(1, 2))
+                self._rec.log(path, rr.LineStrips2D(ends[known]),
+                              _any_values(constraint_id=np.array([c.id for c in picked], dtype=np.int64)[known]))
+
+    def _log_legend(self, states: np.ndarray, ambiguous: set[int]) -> None:
+        """The map's legend, with the count of each kind at this step."""
+        S = ConstraintState
+        count = {state: int(np.count_nonzero(states == state)) for state in S}
+        drawn, rejected = self._drawn_rejected
+        truth_known = count[S.ACCEPTED_FALSE] + count[S.REJECTED_TRUE] + count[S.REJECTED_FALSE] > 0
+        cells = [
+            ("gold (thick)", "best estimate (rank 1)"),
+            ("green", f"{count[S.ACCEPTED]} accepted" + (" true" if truth_known else "")),
+            ("red (thickest)", f"{count[S.ACCEPTED_FALSE]} accepted but false"),
+            ("orange", f"{count[S.REJECTED_TRUE]} true loops missed"),
+        ]
+        if ambiguous:
+            cells.append(("violet", f"{len(ambiguous)} ambiguous (flagged)"))
+        cells += [
+            ("faint grey", f"{rejected} rejected" + (f" ({drawn} drawn)" if drawn < rejected else "")),
+            ("light blue / grey", "ground truth / odometry (under)"),
+        ]
+        if self._gt_rows:
+            cells.append(("thin red / orange on the light blue", "false / missed loops between their true places"))
+        cells += [
+            ("thin blue", "other top hypotheses"),
+        ]
+        # Prose, not a table: it wraps to whatever width the panel has.
+        text = " · ".join(f"**{colour}**: {meaning}" for colour, meaning in cells)
+        self._rec.log(bp.LEGEND, rr.TextDocument(text, media_type=rr.MediaType.MARKDOWN))
+
+    def _log_consistency(self, step, truth: Sequence[bool | None]) -> None:
+        """The top hypotheses × the constraints that decide between them (the paper's Fig. W), as an
+        image: a cell is lit where the hypothesis is consistent with the constraint, green for a
+        true constraint, red for a false one, blue where the truth is unknown."""
+        snap = consistency_snapshot(step, rows=self.config.top_hypotheses)
+        if not snap.consistent.size:
+            self._rec.log(bp.HYPOTHESES_CONSISTENCY, rr.Clear(recursive=False))
             return
-        for h in step.ranking:
-            self._tree.setdefault(h.id, (h.parent_id, None, h.window))
-        if len(self._tree) > TREE_MAX_NODES:
-            for old in sorted(self._tree)[: len(self._tree) - TREE_MAX_NODES]:
-                del self._tree[old]
-        kept = {h.id: h for h in step.ranking}
-        top_id = step.ranking[0].id if step.ranking else None
-        ids = sorted(self._tree)
+        colours = np.array([_CELL_OFF, _CELL_TRUE, _CELL_FALSE, _CELL_UNKNOWN], dtype=np.uint8)
+        code = np.zeros(snap.consistent.shape, dtype=np.int64)
+        for c, cid in enumerate(snap.constraint_ids):
+            t = truth[cid] if cid < len(truth) else None
+            code[:, c] = np.where(snap.consistent[:, c], 1 if t is True else 2 if t is False else 3, 0)
+        self._rec.log(
+            bp.HYPOTHESES_CONSISTENCY,
+            # From bytes with explicit sizes: an ndarray of one row would be taken for a 2-D image.
+            rr.Image(bytes=colours[code].tobytes(), width=code.shape[1], height=code.shape[0], color_model="RGB",
+                     datatype="u8", magnification_filter="Nearest"),
+            _any_values(rows_hypothesis_id=snap.hypothesis_ids, columns_constraint_id=snap.constraint_ids),
+        )
+
+    def _log_tree(self, step, truth: Sequence[bool | None]) -> None:
+        """The ancestry of the current top hypotheses (the paper's Fig. X), laid out left to right."""
+        grow_tree(self._tree, step)
+        if not step.ranking:
+            return
+        top = step.ranking[: self.config.top_hypotheses]
+        nodes = ancestry(self._tree, [h.id for h in top])
+        if not nodes:
+            return
+        parents, chains = compress_chains({n: self._tree[n][0] for n in nodes}, {n: self._tree[n][1] for n in nodes},
+                                          [h.id for h in top])
+        nodes = sorted(parents)
+        positions = tree_layout(nodes, parents, [h.id for h in top], dx=TREE_DX, dy=TREE_DY)
+        rank = {h.id: h for h in top}
         labels, colors = [], []
-        for hid in ids:
-            parent, cid, _ = self._tree[hid]
-            label = f"H{hid}" + (f" +c{cid}" if cid is not None else "")
-            if hid in kept:
-                label += f" ({kept[hid].score})"
-            labels.append(label)
-            colors.append(_RANK1_COLOR if hid == top_id else ((90, 160, 250) if hid in kept else (110, 110, 110)))
-        self._rec.log(bp.HYPOTHESES_TREE, rr.GraphNodes([f"H{i}" for i in ids], labels=labels, colors=colors))
-        edges = [(f"H{p}", f"H{c}") for c, (p, _, _) in ((i, self._tree[i]) for i in ids) if p is not None and p in self._tree]
-        if edges:
-            self._rec.log(bp.HYPOTHESES_TREE, rr.GraphEdges(edges, graph_type="directed"))
+        for n in nodes:
+            added = chains.get(n, ())
+            false_added = [c for c in added if 0 <= c < len(truth) and truth[c] is False]
+            h = rank.get(n)
+            labels.append(f"H{n}" + (f" #{h.rank}" if h else "") + _chain_label(added, false_added))
+            colors.append(_RANK1_COLOR if h is not None and h.rank == 1 else (255, 60, 60) if false_added
+                          else (90, 160, 250) if h is not None else (130, 130, 130))
+        self._rec.log(bp.HYPOTHESES_TREE, rr.GraphNodes([f"H{n}" for n in nodes], labels=labels, colors=colors,
+                                                        positions=[positions[n] for n in nodes], show_labels=True))
+        edges = [(f"H{p}", f"H{n}") for n, p in parents.items() if p is not None and p in parents]
+        self._rec.log(bp.HYPOTHESES_TREE, rr.GraphEdges(edges, graph_type="directed"))
 
     def _log_events(self, update: StepUpdate, states: np.ndarray) -> None:
+        """Bookmarks on the ``frame`` timeline: each window end, each false acceptance (the first
+        named as such), the first missed true loop, drops, and each change of the rank-1 hypothesis."""
         rec = self._rec
         step = update.step
         constraints = update.constraints
         accepted = set(int(i) for i in step.accepted_constraint_ids)
         frame = step.frame_index
-        for cid in sorted(accepted - self._accepted):
+        newly = sorted(accepted - self._accepted)
+        for cid in newly:
             c = constraints[cid]
-            state = ConstraintState(int(states[cid]))
-            truly = " — TRULY FALSE" if state is ConstraintState.ACCEPTED_FALSE else ""
-            rec.log(bp.EVENTS, rr.TextLog(
-                f"constraint {cid} ({c.query_frame}↔{c.match_frame}) accepted at frame {frame}{truly}",
-                level=rr.TextLogLevel.WARN if truly else rr.TextLogLevel.INFO))
-        for cid in sorted(self._accepted - accepted):
-            c = constraints[cid]
-            rec.log(bp.EVENTS, rr.TextLog(
-                f"constraint {cid} ({c.query_frame}↔{c.match_frame}) no longer accepted at frame {frame}",
-                level=rr.TextLogLevel.INFO))
+            if ConstraintState(int(states[cid])) is ConstraintState.ACCEPTED_FALSE:
+                first = "" if self._wrong_seen else "FIRST wrong acceptance: "
+                self._wrong_seen = True
+                rec.log(bp.EVENTS, rr.TextLog(f"frame {frame}: {first}constraint {cid} ({c.query_frame}↔{c.match_frame}) "
+                                              "accepted, but it is false", level="WRONG"))
+        dropped = sorted(self._accepted - accepted)
+        if dropped:
+            rec.log(bp.EVENTS, rr.TextLog(f"frame {frame}: {len(dropped)} no longer accepted: " + ", ".join(
+                f"{cid} ({constraints[cid].query_frame}↔{constraints[cid].match_frame})" for cid in dropped[:12])
+                + (" …" if len(dropped) > 12 else ""), level="DROPPED"))
+        if not self._missed_seen:
+            missed = np.flatnonzero(states == ConstraintState.REJECTED_TRUE)
+            if len(missed):
+                self._missed_seen = True
+                c = constraints[int(missed[0])]
+                rec.log(bp.EVENTS, rr.TextLog(
+                    f"frame {frame}: FIRST missed true loop: constraint {c.id} ({c.query_frame}↔{c.match_frame}) not accepted"
+                    + (f" ({len(missed)} true loops left out here)" if len(missed) > 1 else ""), level="MISSED"))
         self._accepted = accepted
         if step.ranking:
             top = (step.ranking[0].id, step.ranking[0].score)
-            if self._top is None or top[0] != self._top[0]:
-                before = "none" if self._top is None else f"#{self._top[0]} (score {self._top[1]})"
-                rec.log(bp.EVENTS, rr.TextLog(
-                    f"rank-1 hypothesis changed from {before} to #{top[0]} (score {top[1]}) at frame {frame}",
-                    level=rr.TextLogLevel.INFO))
+            if self._top is not None and top[0] != self._top[0]:
+                rec.log(bp.EVENTS, rr.TextLog(f"frame {frame}: rank 1 H{self._top[0]} (score {self._top[1]}) → H{top[0]} (score {top[1]})",
+                                              level="RANK-1"))
             self._top = top
-        if step.dropped:
-            rec.log(bp.EVENTS, rr.TextLog(f"{len(step.dropped)} hypotheses dropped at frame {frame}: "
-                                          + ", ".join(f"#{h} ({why})" for h, why in step.dropped[:10])
-                                          + (" …" if len(step.dropped) > 10 else ""),
-                                          level=rr.TextLogLevel.DEBUG))
+        det = update.metrics.detection
+        parts = [f"frame {frame}: window {step.window_index} ends, {det.accepted} accepted (+{len(newly)})"]
+        if det.false_positives is not None:
+            parts.append(f"{det.false_positives} false, {det.false_negatives} missed")
+        if det.precision is not None or det.recall is not None:
+            parts.append(f"P {_fmt(det.precision)} R {_fmt(det.recall)}")
+        if update.metrics.ate_rmse_m is not None:
+            parts.append(f"ATE {update.metrics.ate_rmse_m:.2f} m")
+        if step.ranking:
+            parts.append(f"rank 1 H{step.ranking[0].id} (score {step.ranking[0].score})")
+        rec.log(bp.EVENTS, rr.TextLog(", ".join(parts), level="FINAL" if update.final else "WINDOW"))
+
 
     def _log_metrics(self, update: StepUpdate) -> None:
         rec = self._rec
@@ -596,7 +752,14 @@ class RerunSink(BaseSink):
         self._log_trajectories_if_any()
         self._rec.log(bp.REPORT, rr.TextDocument(self._report_markdown(summary), media_type=rr.MediaType.MARKDOWN), static=True)
         self._rec.log(bp.REPORT_TIMING, rr.TextDocument(_timing_markdown(summary), media_type=rr.MediaType.MARKDOWN), static=True)
+        self._recorder.on_finish(summary)
+        self._log_postmortem(self._recorder.record)
         self._finished = True
+
+    def _log_postmortem(self, record) -> None:
+        """The run record's columns as static ``/postmortem/<table>`` entities (``lcv-replay report``)."""
+        for table, columns in record.to_columns().items():
+            self._rec.log(f"{bp.POSTMORTEM}/{table}", _any_values(**columns), static=True)
 
     def _log_trajectories_if_any(self) -> None:
         if self._map.frames:
@@ -671,6 +834,19 @@ def _rank_values(ranking) -> np.ndarray:
     return np.array([h.score for h in ranking], dtype=np.float64)
 
 
-def _rank_color(rank: int, top_k: int) -> tuple[int, int, int]:
+def _chain_label(added: Sequence[int], false_added: Sequence[int]) -> str:
+    """``" +c12"``, ``" +absorb"``, or ``" +5 (c3…c40, 2✗)"`` for a collapsed chain."""
+    if not added:
+        return ""
+    if len(added) == 1:
+        c = added[0]
+        return (" +absorb" if c < 0 else f" +c{c}") + (" ✗" if false_added else "")
+    named = [c for c in added if c >= 0]
+    span = f"c{named[0]}…c{named[-1]}" if len(named) > 1 else (f"c{named[0]}" if named else "absorb")
+    return f" +{len(added)} ({span}" + (f", {len(false_added)}✗" if false_added else "") + ")"
+
+
+def _rank_color(rank: int, top_k: int) -> tuple[int, int, int, int]:
+    """Faint blue to violet by rank (the other top hypotheses stay under the estimate)."""
     t = (rank - 1) / max(top_k - 1, 1)
-    return (int(90 + 60 * t), int(160 - 60 * t), int(250 - 100 * t))
+    return (int(90 + 80 * t), int(150 - 70 * t), 250, 110)

@@ -157,6 +157,7 @@ def result_step(result: VerificationResult, last: VerifierStep | None) -> Verifi
         trajectories={top_id: np.asarray(result.trajectory)},
         consistency=last.consistency if last is not None else np.zeros((0, 0), dtype=bool),
         timings_s={},
+        ambiguous_constraint_ids=tuple(result.ambiguous_constraint_ids),
     )
 
 

@@ -89,7 +89,7 @@ class VerificationConfig:
     # Pose-graph noise where the input carries none (not in the paper; g2o logs carry both):
     odometry_sigmas: tuple[float, float, float] = (0.05, 0.05, 0.002)  # per-frame odometry sigma [m, m, rad], ~libviso2 at 10 Hz
     loop_sigmas: tuple[float, float, float] = (2.0, 2.0, 0.2)  # identity "same place" loop [m, m, rad]: same place, not same pose (sec. II-A)
-    top_k_trajectories: int = 3  # trajectories of the top-ranked hypotheses carried by each step (for sinks)
+    top_k_trajectories: int = 10  # trajectories of the top-ranked hypotheses carried by each step (for sinks: the map and the paper's Fig. V)
     max_iterations: int = 100  # Levenberg-Marquardt iteration cap per hypothesis
     ilv_plus: IlvPlusConfig = field(default_factory=IlvPlusConfig)  # the improved verifier
     baselines: BaselineConfig = field(default_factory=BaselineConfig)  # baseline verifiers

@@ -63,12 +63,6 @@ def test_unknown_method_before_anything_runs(fleet_logs, tmp_path):
     assert not (tmp_path / "run").exists()
 
 
-def test_export_and_report_refused_until_available(fleet_logs, tmp_path):
-    code, out = _cli(["batch", fleet_logs.logs[0], "--out", tmp_path / "run", "--report"])
-    _one_error(code, out, "--report", exit_code=3)
-    assert not (tmp_path / "run").exists()
-
-
 def test_compare_runs_with_no_log_in_common(tmp_path):
     import json
 

@@ -106,6 +106,20 @@ def test_batch_equals_the_per_log_replay(ray_cluster, fleet_logs, tmp_path):
     assert {k: v for k, v in batch.items() if k not in VOLATILE} == {k: v for k, v in single.items() if k not in VOLATILE}
 
 
+def test_batch_export_and_report_equal_the_per_log_ones(ray_cluster, fleet_logs, tmp_path):
+    log = fleet_logs.logs[2]
+    args = ["--config", fleet_logs.config, "--seed", "7", "--quiet"]
+    code, out = _cli(["batch", log, "--out", tmp_path / "run", "--export", "--report", *args])
+    assert code == 0, out
+    per_log = tmp_path / "run" / "logs" / "route2"
+    code, out = _cli([log, *args, "--save", tmp_path / "single.rrd", "--export", tmp_path / "single", "--report",
+                      tmp_path / "single.html"])
+    assert code == 0, out
+    for name in ("loops.csv", "trajectory.tum", "accepted.g2o", "config.toml"):
+        assert (per_log / "export" / name).read_text() == (tmp_path / "single" / name).read_text(), name
+    assert "Fig. X" in (per_log / "report.html").read_text(encoding="utf-8")
+
+
 def test_ctrl_c_stops_scheduling_and_a_rerun_finishes(ray_cluster, fleet_logs, tmp_path):
     run_dir = tmp_path / "run"
     spec = _spec(fleet_logs, run_dir)

@@ -184,9 +184,30 @@ def last_row(table, suffix: str, *, timeline: str = "frame"):
     return values[i]
 
 
+def by_frame(table, suffix: str, *, timeline: str = "frame") -> dict:
+    """``{time: value}`` of column ``suffix`` over the temporal rows (static rows left out)."""
+    values = table.column(column(table, suffix)).to_pylist()
+    return {t: v for t, v in zip(table.column(timeline).to_pylist(), values) if t is not None and v is not None}
+
+
 def series(table, *, timeline: str = "frame") -> list[tuple[int, float]]:
     """``(time, value)`` of a Scalars entity, in time order."""
     name = column(table, "Scalars:scalars")
     times = table.column(timeline).to_pylist()
     values = table.column(name).to_pylist()
     return sorted((int(t), float(v[0])) for t, v in zip(times, values) if v and t is not None)
+
+
+def last_verdicts(tables) -> dict[int, int]:
+    """``{constraint_id: ConstraintState}`` drawn at the last step, over the per-verdict constraint
+    entities (the rejected ones are thinned beyond ``REJECTED_MAX_DRAWN``)."""
+    from lcv_replay.sinks import blueprint as bp
+
+    out: dict[int, int] = {}
+    for path in bp.CONSTRAINT_ENTITIES:
+        if path not in tables or not any(n.endswith("constraint_id") for n in tables[path].column_names):
+            continue  # absent, or only its static style (e.g. no ambiguous constraint ever)
+        ids = last_row(tables[path], "constraint_id")
+        classes = last_row(tables[path], "LineStrips2D:class_ids")
+        out.update(zip(ids, classes))
+    return out

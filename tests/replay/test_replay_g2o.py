@@ -23,7 +23,16 @@ from lcv_replay.sinks.layout import ConstraintState
 from lcv_replay.sinks.config import RerunOutputs
 from lcv_replay.sinks.rerun_sink import RerunSink
 from lcv_replay.sinks.summary import SummarySink, read_summary_json
-from tests.replay.helpers import FAST_CONFIG_TOML, column, last_row, read_rrd, record_square_route, series, write_config
+from tests.replay.helpers import (
+    FAST_CONFIG_TOML,
+    column,
+    last_row,
+    last_verdicts,
+    read_rrd,
+    record_square_route,
+    series,
+    write_config,
+)
 
 SEED = 7
 
@@ -65,7 +74,7 @@ def test_summary_json_has_the_stable_keys(square):
 
 def test_recording_has_the_entities_of_a_g2o_replay(square):
     tables = square["tables"]
-    for path in (bp.CONSTRAINTS_SEGMENTS, bp.HYPOTHESES_TRAJECTORIES, bp.HYPOTHESES_RANKS, bp.HYPOTHESES_CONSISTENCY,
+    for path in (*bp.CONSTRAINT_ENTITIES[:4], bp.LEGEND, bp.HYPOTHESES_TRAJECTORIES, bp.HYPOTHESES_RANKS, bp.HYPOTHESES_CONSISTENCY,
                  bp.HYPOTHESES_TREE, bp.HYPOTHESES_SEQUENCES, bp.TRAJ_ODOMETRY, bp.TRAJ_GROUND_TRUTH, bp.TRAJ_BEST,
                  bp.TRAJ_CURRENT, bp.EVENTS, bp.REPORT, bp.metric_path("precision"), bp.metric_path("recall"),
                  bp.metric_path("ate_rmse_m"), bp.metric_path("constraints"), bp.metric_path("hypotheses"),
@@ -109,14 +118,14 @@ def test_with_the_paper_method_the_bars_are_the_scores(square, tmp_path):
 
 
 def test_accepted_in_summary_are_those_coloured_accepted_at_the_last_frame(square):
-    segs = square["tables"][bp.CONSTRAINTS_SEGMENTS]
-    ids = last_row(segs, "constraint_id")
-    classes = last_row(segs, "LineStrips2D:class_ids")
-    coloured = {i for i, c in zip(ids, classes) if ConstraintState(c).accepted}
+    verdicts = last_verdicts(square["tables"])
+    assert len(verdicts) == square["summary"].constraints  # every judged constraint is drawn once
+    coloured = {i for i, c in verdicts.items() if ConstraintState(c).accepted}
     assert coloured == set(square["summary"].accepted_constraint_ids)
     assert len(coloured) == square["summary"].accepted
-    wrong = {i for i, c in zip(ids, classes) if c == ConstraintState.ACCEPTED_FALSE}
+    wrong = {i for i, c in verdicts.items() if c == ConstraintState.ACCEPTED_FALSE}
     assert len(wrong) == square["summary"].false_positives
+    assert set(last_row(square["tables"][bp.CONSTRAINTS_WRONG], "constraint_id")) == wrong
 
 
 def test_metrics_series_end_at_the_summary(square):
@@ -176,10 +185,9 @@ def test_stop_token_summarises_the_last_completed_window(square, tmp_path):
     summary = replay(ReplayOptions(log_path=square["log"], config=config, seed=SEED),
                      [RerunSink(config.rerun, RerunOutputs(save=rrd)), StopAt()], stop=stop, handle_sigint=False)
     assert summary.interrupted and summary.frames == 251 and summary.rrd == str(rrd)
-    segs = read_rrd(rrd)[bp.CONSTRAINTS_SEGMENTS]
-    assert max(segs.column("frame").to_pylist()) == 199  # the last completed window
-    classes = last_row(segs, "LineStrips2D:class_ids")
-    assert sum(ConstraintState(c).accepted for c in classes) == summary.accepted
+    tables = read_rrd(rrd)
+    assert max(f for f in tables[bp.CONSTRAINTS_ACCEPTED].column("frame").to_pylist() if f is not None) == 199  # the last completed window
+    assert sum(ConstraintState(c).accepted for c in last_verdicts(tables).values()) == summary.accepted
     assert math.isfinite(summary.wall_time_s)
 
 

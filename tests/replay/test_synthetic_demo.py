@@ -79,7 +79,8 @@ def test_image_route_logs_camera_and_retrieval(demo_cache, tmp_path):
     assert summary.truth_source == "ground_truth" and summary.constraints > 0
     tables = read_rrd(rrd)
     for path in (bp.CAMERA_LEFT, bp.CAMERA_RIGHT, bp.RETRIEVAL_CODE, bp.RETRIEVAL_DISTANCES, bp.RETRIEVAL_MATCHES,
-                 bp.RETRIEVAL_LINES, bp.metric_path("prefilter_size"), bp.CONSTRAINTS_SEGMENTS):
+                 bp.RETRIEVAL_LINES, bp.metric_path("prefilter_size"), bp.CONSTRAINTS_ACCEPTED,
+                 bp.CONSTRAINTS_REJECTED):
         assert path in tables, path
     assert tables[bp.CAMERA_LEFT].column("frame").to_pylist() == list(range(0, FRAMES, 10))
     queries = [f for f in tables[bp.RETRIEVAL_CODE].column("frame").to_pylist() if f is not None]

@@ -11,10 +11,13 @@ from hypothesis import strategies as st
 
 from lcv_replay.records import LoopCandidate
 from lcv_replay.sinks.layout import (
+    ancestry,
+    compress_chains,
+    deciding_constraints,
+    tree_layout,
     ConstraintState,
     MapEstimate,
     anchor_to_first,
-    consistency_rows,
     constraint_states,
     flatten,
     hypotheses_markdown,
@@ -97,15 +100,48 @@ def test_anchor_to_first_moves_the_first_pose_and_keeps_shape(x, y, yaw):
     np.testing.assert_allclose(d_new, d_ref, atol=1e-9)
 
 
-def test_segments_and_consistency_rows():
+def test_segments():
     positions = np.arange(20, dtype=float).reshape(10, 2)
     seg = segments(positions, np.array([[5, 1], [9, 0]]))
     assert seg.shape == (2, 2, 2)
     np.testing.assert_array_equal(seg[0], [positions[5], positions[1]])
-    assert consistency_rows((200, 100), min_rows=10, max_cells=1_000_000) == 200
-    assert consistency_rows((200, 50_000), min_rows=10, max_cells=1_000_000) == 20
-    assert consistency_rows((200, 500_000), min_rows=10, max_cells=1_000_000) == 10
-    assert consistency_rows((5, 500_000), min_rows=10, max_cells=1_000_000) == 5
+
+
+def test_deciding_constraints_keep_what_separates_the_top_hypotheses():
+    rng = np.random.default_rng(3)
+    m = np.ones((4, 300), dtype=bool)  # every hypothesis holds most constraints ...
+    m[:, 250:] = False  # ... none holds the last 50
+    m[1, [10, 20]] = False  # rank 2 differs from rank 1 on two ...
+    m[3, rng.choice(200, 30, replace=False)] = False  # ... rank 4 on thirty
+    deciding = int((m != m[:1]).any(axis=0).sum())  # 32
+    cols = deciding_constraints(m, rows=4, max_columns=12, context=2)
+    assert len(cols) == 12 and len(set(cols.tolist())) == 12
+    assert {10, 20} <= set(cols.tolist())  # what separates rank 1 from rank 2 comes first
+    assert sum(m[:, c].all() for c in cols) == 0  # no room left for context
+    cols = deciding_constraints(m, rows=4, max_columns=40, context=2)
+    assert len(cols) == deciding + 2 and sum(m[:, c].all() for c in cols) == 2  # every deciding one, two for reference
+    patterns = [tuple(m[:, c]) for c in cols]
+    assert patterns == sorted(patterns, reverse=True)  # sorted by pattern, rank 1 most significant
+    small = np.array([[True, False, True], [False, True, True]])
+    assert sorted(deciding_constraints(small, rows=2, max_columns=10).tolist()) == [0, 1, 2]  # all fit
+    assert deciding_constraints(np.zeros((0, 0), bool), rows=3, max_columns=5).size == 0
+
+
+def test_ancestry_layout_and_chain_compression():
+    # 0 -> 1 -> 2 -> 3 -> {4, 5}; 0 -> 6; 7 has a parent that was never reported.
+    tree = {0: (None, None, 0), 1: (0, 10, 1), 2: (1, 11, 1), 3: (2, -1, 2), 4: (3, 12, 2), 5: (3, 13, 2), 6: (0, 14, 1),
+            7: (99, 15, 2)}
+    assert ancestry(tree, [4, 5]) == [0, 1, 2, 3, 4, 5]
+    assert ancestry(tree, [7]) == [7]
+    nodes = ancestry(tree, [5, 4, 6])
+    parents = {n: tree[n][0] for n in nodes}
+    pos = tree_layout(nodes, parents, leaves=[5, 4, 6], dx=1.0, dy=1.0)
+    assert pos[0][0] == 0 and pos[5][0] == 4  # depth on x
+    assert pos[5][1] < pos[4][1] < pos[6][1]  # leaves stacked in the given (rank) order
+    assert pos[3][1] == (pos[4][1] + pos[5][1]) / 2  # a parent at the mean height of its children
+    new_parents, chains = compress_chains(parents, {n: tree[n][1] for n in nodes}, keep=[4, 5, 6])
+    assert new_parents == {0: None, 3: 0, 4: 3, 5: 3, 6: 0}  # 1 and 2 (single child, not kept) folded
+    assert chains[3] == (10, 11, -1) and chains[4] == (12,) and chains[6] == (14,)
 
 
 def test_markdown_tables_name_ranks_and_constraints():
@@ -114,9 +150,13 @@ def test_markdown_tables_name_ranks_and_constraints():
         HypothesisSummary(id=7, parent_id=2, constraint_ids=(0, 2), score=5, rank=1, window=1, chi2=12.5),
         HypothesisSummary(id=0, parent_id=None, constraint_ids=(), score=1, rank=2, window=0),
     )
-    text = hypotheses_markdown(ranking, constraints, top=10)
-    assert "| 1 | #7 | #2 | 5 | 12.5 | 1 | 0: 100↔0, 2: 102↔2 |" in text
+    text = hypotheses_markdown(ranking, constraints, top=10, truth=[True, True, False])
+    assert "| 1 | #7 | #2 | 5 | 12.5 | 1 | 0: 100↔0, 2: 102↔2 ✗ |" in text  # ✗: labelled false
     assert "(odometry only)" in text
+    keyed = (HypothesisSummary(id=7, parent_id=2, constraint_ids=(0,), score=5, rank=1, window=1, rank_key=40.25),
+             HypothesisSummary(id=3, parent_id=0, constraint_ids=(1,), score=6, rank=2, window=1, rank_key=12.0))
+    text = hypotheses_markdown(keyed, constraints, top=10, key_name="TLS key")
+    assert "| rank | TLS key | hypothesis |" in text and "| 1 | 40.2 | #7 |" in text  # the key that ranks, shown
     table = retrieval_markdown(50, [3, 9], [0.1, 0.25], [1, 2], admitted={9})
     assert "| 2 | 9 | 0.2500 | 2 | — | yes |" in table and "| 1 | 3 | 0.1000 | 1 | — | no |" in table
     table = retrieval_markdown(50, [3, 9], [0.1, 0.25], [1, 2], admitted={9}, similarity=[0.91, None])

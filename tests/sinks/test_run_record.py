@@ -1,0 +1,55 @@
+"""The run record: each constraint's fate from the steps a sink sees, and its round trip through
+plain columns (what the recording stores)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from lcv_replay.sinks.base import StepUpdate
+from lcv_replay.sinks.run_record import RunRecord, RunRecorder
+from tests.sinks.scripted import script
+
+
+class _FlagLast(RunRecorder):
+    """A recorder whose final step flags constraint 1 ambiguous (as a verifier may, instead of
+    accepting or rejecting it)."""
+
+    def on_step(self, update: StepUpdate) -> None:
+        if update.final:
+            update = dataclasses.replace(update, step=dataclasses.replace(update.step, ambiguous_constraint_ids=(1,)))
+        super().on_step(update)
+
+
+def test_fates_windows_and_d2(tmp_path):
+    recorder = RunRecorder()
+    script(recorder, tmp_path)
+    r = recorder.record
+    assert [(l.state, l.truth, l.first_accepted_frame, l.dropped_frame) for l in r.loops] == [
+        ("accepted", True, 19, None), ("rejected", False, 19, 29), ("accepted", True, 29, None)]
+    assert [l.query_stamp_ns - r.stamps_ns[0] for l in r.loops] == [1_500_000_000, 1_500_000_000, 2_500_000_000]
+    # d² under the final estimate (rank 1: x = frame, y = 0.5): the "same place" loops are 13 m,
+    # 7 m and 22 m apart with the 2 m loop sigma of the default config: (d / 2)².
+    np.testing.assert_allclose([l.d2 for l in r.loops], [(13 / 2) ** 2, (7 / 2) ** 2, (22 / 2) ** 2])
+    assert [(w.frame_index, w.precision, w.final) for w in r.windows] == [(19, 0.5, False), (29, 1.0, True)]
+    assert r.first_wrong_acceptance().constraint_id == 1 and r.first_missed is None
+    assert r.counts() == {"accepted": 2, "rejected": 1, "pending": 0, "ambiguous": 0, "wrong": 0, "missed": 0}
+    assert [s.hypothesis_ids.tolist() for s in r.consistency] == [[3, 0], [5, 3, 0]]
+    assert {t.id: (t.parent_id, t.constraint_id) for t in r.tree} == {0: (None, None), 3: (0, 1), 5: (0, 2)}
+    assert sorted(r.top_trajectories) == [0, 3, 5] and r.estimate.shape == (30, 3)
+
+
+def test_columns_round_trip_exactly(tmp_path):
+    recorder = RunRecorder()
+    script(recorder, tmp_path)
+    back = RunRecord.from_columns(recorder.record.to_columns())
+    assert back == recorder.record
+    assert back != dataclasses.replace(recorder.record, seed=99)
+
+
+def test_a_constraint_flagged_ambiguous_is_neither_accepted_nor_rejected(tmp_path):
+    recorder = _FlagLast()
+    script(recorder, tmp_path)
+    assert [l.state for l in recorder.record.loops] == ["accepted", "ambiguous", "accepted"]
+    assert recorder.record.counts()["ambiguous"] == 1
