@@ -65,8 +65,14 @@ def default_cache_dir() -> Path:
     """``$LCV_CACHE_DIR``, else ``$XDG_CACHE_HOME/lcv-replay/descriptors`` (``~/.cache/...``)."""
     if os.environ.get("LCV_CACHE_DIR"):
         return Path(os.environ["LCV_CACHE_DIR"])
-    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return base / "lcv-replay" / "descriptors"
+    return user_cache_dir("descriptors")
+
+
+def user_cache_dir(name: str) -> Path:
+    """``$LCV_CACHE_DIR/name``, else ``$XDG_CACHE_HOME/lcv-replay/name`` (``~/.cache/lcv-replay/name``)."""
+    if os.environ.get("LCV_CACHE_DIR"):
+        return Path(os.environ["LCV_CACHE_DIR"]) / name
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "lcv-replay" / name
 
 
 def log_cache_key(path: Path) -> str:

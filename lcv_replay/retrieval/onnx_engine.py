@@ -45,10 +45,9 @@ _COSINE_MIN = 0.99999  # an export that differs more from torch is refused (neve
 
 def onnx_cache_dir() -> Path:
     """``$LCV_CACHE_DIR/onnx``, else ``$XDG_CACHE_HOME/lcv-replay/onnx`` (``~/.cache/lcv-replay/onnx``)."""
-    if os.environ.get("LCV_CACHE_DIR"):
-        return Path(os.environ["LCV_CACHE_DIR"]) / "onnx"
-    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return base / "lcv-replay" / "onnx"
+    from lcv_replay.retrieval.cache import user_cache_dir
+
+    return user_cache_dir("onnx")
 
 
 def _file_digest(path: Path) -> str:
