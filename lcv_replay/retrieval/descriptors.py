@@ -223,7 +223,8 @@ class EfficientNetLite0Backend:
     "paper", ONNX Runtime otherwise):
 
     * ``"onnxruntime"``: the folded model exported to ONNX at first use and cached
-      (:mod:`lcv_replay.retrieval.onnx_engine`); faster on this project's CPUs (docs/retrieval.md).
+      (:mod:`lcv_replay.retrieval.onnx_engine`); as fast as torch here, starts without importing torch,
+      and never spins its threads (docs/retrieval.md).
       When it cannot run (no onnxruntime, a failed export) ``"auto"`` falls back to torch with a
       warning; an explicit ``"onnxruntime"`` is an error.
     * ``"torch"``: loads the packaged weights, folds BatchNorm and padding into the convolutions
