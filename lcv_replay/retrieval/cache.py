@@ -28,7 +28,7 @@ from typing import Iterable, Iterator
 import numpy as np
 
 from lcv_replay.errors import RetrievalError
-from lcv_replay.fileio import atomic_output
+from lcv_replay.fileio import atomic_output, user_cache_dir
 from lcv_replay.records import Frame
 from lcv_replay.retrieval.descriptors import DescriptorBackend
 
@@ -66,13 +66,6 @@ def default_cache_dir() -> Path:
     if os.environ.get("LCV_CACHE_DIR"):
         return Path(os.environ["LCV_CACHE_DIR"])
     return user_cache_dir("descriptors")
-
-
-def user_cache_dir(name: str) -> Path:
-    """``$LCV_CACHE_DIR/name``, else ``$XDG_CACHE_HOME/lcv-replay/name`` (``~/.cache/lcv-replay/name``)."""
-    if os.environ.get("LCV_CACHE_DIR"):
-        return Path(os.environ["LCV_CACHE_DIR"]) / name
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "lcv-replay" / name
 
 
 def log_cache_key(path: Path) -> str:

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from lcv_replay.errors import RetrievalError
-from lcv_replay.fileio import atomic_output, write_text_atomic
+from lcv_replay.fileio import atomic_output, user_cache_dir, write_text_atomic
 from lcv_replay.retrieval import efficientnet as enet
 
 log = logging.getLogger(__name__)
@@ -45,8 +45,6 @@ _COSINE_MIN = 0.99999  # an export that differs more from torch is refused (neve
 
 def onnx_cache_dir() -> Path:
     """``$LCV_CACHE_DIR/onnx``, else ``$XDG_CACHE_HOME/lcv-replay/onnx`` (``~/.cache/lcv-replay/onnx``)."""
-    from lcv_replay.retrieval.cache import user_cache_dir
-
     return user_cache_dir("onnx")
 
 
