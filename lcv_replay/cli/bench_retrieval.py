@@ -11,7 +11,7 @@ from typing import Optional
 
 import typer
 
-from lcv_replay.cli.app import app, bench_app, record_app  # noqa: F401
+from lcv_replay.cli.app import bench_app, config_option, force_option
 
 DEFAULT_BACKENDS = ["efficientnet-lite0", "thumbnail"]
 
@@ -25,7 +25,7 @@ def bench_retrieval(
     exclude_frames: Optional[int] = typer.Option(None, "--exclude-frames", help="Δt: frames closer than this are not eligible (default: retrieval.exclusion_frames)."),
     backend: Optional[list[str]] = typer.Option(None, "--backend", metavar="NAME", help="Descriptor backend; repeat for several (default: efficientnet-lite0 and thumbnail)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the per-backend results as JSON."),
-    config_file: Optional[Path] = typer.Option(None, "--config", "-c", help="TOML config; its [retrieval] table applies."),
+    config_file: Optional[Path] = config_option("its [retrieval] table applies"),
     mode: Optional[list[str]] = typer.Option(None, "--mode", metavar="MODE", help="Retrieval mode: ranked (the default) or paper; repeat to compare both in one run."),
     top_k: Optional[int] = typer.Option(None, "--top-k", help="N_r, candidates per query (default 10)."),
     hamming_threshold: Optional[int] = typer.Option(None, "--hamming-threshold", help="T_b of mode paper (default 3)."),
@@ -37,7 +37,7 @@ def bench_retrieval(
     torch_compile: Optional[bool] = typer.Option(None, "--torch-compile/--no-torch-compile", help="Run efficientnet-lite0 through torch.compile."),
     threads: Optional[int] = typer.Option(None, "--threads", help="torch threads (0 = one per core)."),
     timing_runs: int = typer.Option(5, "--timing-runs", help="Timed passes over the images for descriptor speed (median reported)."),
-    force: bool = typer.Option(False, "--force", "-f", help="Overwrite the JSON file."),
+    force: bool = force_option("the JSON file"),
 ) -> None:
     """Recall@1, recall@N_r and candidate precision per backend and mode on an image folder with a truth matrix.
 
@@ -146,9 +146,9 @@ def bench_retrieval_index(
     variant: Optional[list[str]] = typer.Option(None, "--variant", metavar="MODE/ENGINE", help="MODE/ENGINE to measure; repeat for several (default: all: both modes, faiss's approximate indexes beside)."),
     vector_dim: int = typer.Option(1904, "--vector-dim", help="Re-rank vector size (1904 = default descriptor, 128 = PCA)."),
     queries: int = typer.Option(500, "--queries", help="Queries timed per size."),
-    config_file: Optional[Path] = typer.Option(None, "--config", "-c", help="TOML config; its [retrieval] code bits, T_b and M apply."),
+    config_file: Optional[Path] = config_option("its [retrieval] code bits, T_b and M apply"),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the rows as JSON."),
-    force: bool = typer.Option(False, "--force", "-f", help="Overwrite the JSON file."),
+    force: bool = force_option("the JSON file"),
 ) -> None:
     """Per-query time of the first stage + L2 re-rank as the library grows, both modes in one run (synthetic codes)."""
     from lcv_replay.bench.retrieval import DEFAULT_INDEX_VARIANTS, INDEX_VARIANTS, index_query_times
@@ -184,7 +184,7 @@ def bench_descriptor_speed(
     size: int = typer.Option(224, "--size", help="Input size in pixels (a multiple of 32)."),
     threads: int = typer.Option(0, "--threads", help="torch threads for tuned variants (0 = one per core)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the ladder as JSON."),
-    force: bool = typer.Option(False, "--force", "-f", help="Overwrite the JSON file."),
+    force: bool = force_option("the JSON file"),
 ) -> None:
     """EfficientNet-Lite0 ms/image for each optimisation step (untuned eager ... folded + channels_last ...)."""
     from lcv_replay.bench.descriptor_speed import VARIANTS, speed_ladder

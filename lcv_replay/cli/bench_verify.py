@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from lcv_replay.cli.app import app, bench_app, record_app  # noqa: F401
+from lcv_replay.cli.app import bench_app, check_outputs, config_option, force_option
 
 _METHOD_HELP = "Verification method (repeatable): ilv, ilv+, none, ir-only, dcs, gm, cauchy, gnc, oracle, ..."
 
@@ -23,14 +23,6 @@ def _num(value) -> str:
     return "–" if value is None else f"{value:.3f}"
 
 
-def _check_json_output(path: Optional[Path]) -> None:
-    """Fail before any work if ``--json OUT`` cannot be written (it is overwritten if it exists)."""
-    if path is not None:
-        from lcv_replay.fileio import check_output_path
-
-        check_output_path(path, force=True)
-
-
 @bench_app.command(
     "verify",
     help=(
@@ -41,9 +33,10 @@ def _check_json_output(path: Optional[Path]) -> None:
 def bench_verify_command(
     logs: list[Path] = typer.Argument(..., help="lcv-replay MCAP logs with /loop_candidates (e.g. from 'record g2o')."),
     method: list[str] = typer.Option(["ilv+"], "--method", "-m", help=_METHOD_HELP),
-    config: Optional[Path] = typer.Option(None, "--config", help="TOML config; its [verification] section is used."),
+    config: Optional[Path] = config_option("its [verification] section is used"),
     seed: Optional[int] = typer.Option(None, "--seed", help="Override verification.seed."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the rows as a JSON list (atomically)."),
+    force: bool = force_option("the JSON file"),
 ) -> None:
     from lcv_replay.bench.suite import CaseRow, markdown_rows
     from lcv_replay.bench.verify import load_inputs, verify_inputs
@@ -53,7 +46,7 @@ def bench_verify_command(
     verification = _load_verification_config(config)
     for name in method:  # unknown methods fail before any log is read
         make_verifier(name, verification)
-    _check_json_output(json_out)
+    check_outputs(json_out, force=force)
     rows = []
     for path in logs:
         inputs = load_inputs(path)
@@ -76,7 +69,7 @@ def bench_suite_command(
     quick: bool = typer.Option(False, "--quick", help="The CI subset (suite 'quick')."),
     suite: Optional[str] = typer.Option(None, "--suite", help="Built-in suite name (standard, quick) or a suite TOML file."),
     method: list[str] = typer.Option([], "--method", "-m", help=_METHOD_HELP + " Default: the suite's, else none, ir-only, dcs, gm, cauchy, gnc, oracle, ilv, ilv+."),
-    config: Optional[Path] = typer.Option(None, "--config", help="TOML config; its [verification] section is used."),
+    config: Optional[Path] = config_option("its [verification] section is used"),
     seed: Optional[int] = typer.Option(None, "--seed", help="Override verification.seed."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the report (rows, summary, config) as JSON."),
     workdir: Optional[Path] = typer.Option(None, "--workdir", help="Where the suite's logs are built and reused (default ~/.cache/lcv-replay/suite)."),
@@ -84,6 +77,7 @@ def bench_suite_command(
     rows_table: bool = typer.Option(True, "--rows/--no-rows", help="Print the per-case table, not only the per-method summary."),
     address: Optional[str] = typer.Option(None, "--address", help="Run the (case, method) pairs on this Ray cluster (auto, HOST:PORT, ray://HOST:PORT); see 'lcv-replay batch --help'."),
     workers: Optional[int] = typer.Option(None, "--workers", "-j", help="Run the (case, method) pairs as Ray tasks, this many at a time (an embedded local cluster unless --address); default: serial, in this process."),
+    force: bool = force_option("the JSON report"),
 ) -> None:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -107,7 +101,7 @@ def bench_suite_command(
     verification = _load_verification_config(config)
     data_dir = resolve_data_dir(data)
     workdir = workdir or default_workdir()
-    _check_json_output(json_out)
+    check_outputs(json_out, force=force)
     methods = available_suite_methods(method or chosen.methods)
 
     done_rows = []

@@ -16,7 +16,7 @@ import enum
 
 import typer
 
-from lcv_replay.cli.app import app, bench_app, record_app  # noqa: F401
+from lcv_replay.cli.app import force_option, record_app
 
 log = logging.getLogger(__name__)
 
@@ -44,12 +44,15 @@ class LoopMeasurementsChoice(str, enum.Enum):
 
 
 OUT_OPTION = typer.Option(..., "--out", "-o", help="Output .mcap file (written atomically).")
-FORCE_OPTION = typer.Option(False, "--force", "-f", help="Overwrite OUT if it exists.")
+FORCE_OPTION = force_option("OUT")
 QUIET_OPTION = typer.Option(False, "--quiet", "-q", help="No progress bar and no summary line.")
 IMAGE_FORMAT_OPTION = typer.Option(ImageFormatChoice.png, "--image-format", help="png (lossless), jpeg or raw.")
 JPEG_QUALITY_OPTION = typer.Option(95, "--jpeg-quality", min=1, max=100, help="JPEG quality with --image-format jpeg.")
 START_FRAME_OPTION = typer.Option(0, "--start-frame", min=0, help="First source frame to record.")
 MAX_FRAMES_OPTION = typer.Option(None, "--max-frames", min=1, help="Record at most this many frames.")
+#: Ground truth, the same in every recorder: ``--ground-truth PATH`` gives it; ``--no-ground-truth``
+#: records none, even where the recorder finds one next to the data.
+NO_GROUND_TRUTH_OPTION = typer.Option(False, "--no-ground-truth", help="Record no ground truth, even where ROOT/poses/SS.txt exists.")
 LIVE_OPTION = typer.Option(
     False, "--live",
     help="Write OUT itself chunk by chunk (one flushed chunk per frame) so that 'lcv-replay OUT --follow' can watch it while it "
@@ -160,7 +163,8 @@ def record_kitti_command(
     odometry: Optional[Path] = typer.Option(None, "--odometry", help="Odometry of the left camera: KITTI pose file or TUM file (stamps = times.txt)."),
     odometry_format: PoseFormatChoice = typer.Option(PoseFormatChoice.auto, "--odometry-format", help="auto (by column count), kitti or tum."),
     ground_truth: Optional[Path] = typer.Option(None, "--ground-truth", help="Ground-truth poses (default: ROOT/poses/SS.txt if present)."),
-    auto_ground_truth: bool = typer.Option(True, "--auto-ground-truth/--no-ground-truth", help="Use ROOT/poses/SS.txt when --ground-truth is not given."),
+    no_ground_truth: bool = NO_GROUND_TRUTH_OPTION,
+    _auto_ground_truth: bool = typer.Option(True, "--auto-ground-truth", hidden=True, help="Old spelling of the default."),
     color: bool = typer.Option(False, "--color", help="Record image_2/image_3 (P2/P3) instead of the grey pair."),
     start_frame: int = START_FRAME_OPTION,
     max_frames: Optional[int] = MAX_FRAMES_OPTION,
@@ -180,7 +184,7 @@ def record_kitti_command(
         odometry=odometry,
         odometry_format=odometry_format.value,  # type: ignore[arg-type]
         ground_truth=ground_truth,
-        auto_ground_truth=auto_ground_truth,
+        auto_ground_truth=not no_ground_truth,
         color=color,
         start_frame=start_frame,
         max_frames=max_frames,
@@ -200,7 +204,8 @@ def record_euroc_command(
     odometry: Optional[Path] = typer.Option(None, "--odometry", help="Left-camera odometry (TUM with stamps in seconds, or KITTI format, one line per frame)."),
     odometry_format: PoseFormatChoice = typer.Option(PoseFormatChoice.auto, "--odometry-format", help="auto, kitti or tum."),
     vo: bool = typer.Option(False, "--vo", help="Compute /odom with stereo visual odometry on the images (instead of --odometry)."),
-    ground_truth: bool = typer.Option(True, "--ground-truth/--no-ground-truth", help="Use mav0/state_groundtruth_estimate0 when present."),
+    no_ground_truth: bool = typer.Option(False, "--no-ground-truth", help="Record no ground truth, even where mav0/state_groundtruth_estimate0 exists."),
+    _ground_truth: bool = typer.Option(True, "--ground-truth", hidden=True, help="Old spelling of the default."),
     stereo_tolerance_ns: int = typer.Option(1_000_000, "--stereo-tolerance-ns", min=0, help="Left/right stamps closer than this form a pair."),
     start_frame: int = START_FRAME_OPTION,
     max_frames: Optional[int] = MAX_FRAMES_OPTION,
@@ -217,7 +222,7 @@ def record_euroc_command(
         rectify=rectify,
         odometry=odometry,
         odometry_format=odometry_format.value,  # type: ignore[arg-type]
-        ground_truth=ground_truth,
+        ground_truth=not no_ground_truth,
         stereo_tolerance_ns=stereo_tolerance_ns,
         start_frame=start_frame,
         vo=vo,

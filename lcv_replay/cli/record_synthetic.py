@@ -14,7 +14,7 @@ from typing import Iterator
 
 import typer
 
-from lcv_replay.cli.app import bench_app, record_app
+from lcv_replay.cli.app import bench_app, check_outputs, force_option, record_app
 from lcv_replay.cli.record import ImageFormatChoice
 from lcv_replay.errors import ConfigError
 
@@ -77,7 +77,7 @@ def record_synthetic_command(
     drift_yaw_bias_deg_per_m: float = typer.Option(0.008, "--drift-yaw-bias-deg-per-m", help="Systematic yaw drift, degrees per metre travelled."),
     image_format: ImageFormatChoice = typer.Option(ImageFormatChoice.png, "--image-format", case_sensitive=False, help="png (lossless), jpeg or raw."),
     jpeg_quality: int = typer.Option(95, "--jpeg-quality", min=1, max=100, help="JPEG quality with --image-format jpeg."),
-    force: bool = typer.Option(False, "--force", "-f", help="Overwrite OUT if it exists."),
+    force: bool = force_option("OUT"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and no summary line."),
     live: bool = typer.Option(False, "--live", help="Write OUT itself chunk by chunk (one flushed chunk per frame) so that 'lcv-replay OUT --follow' can watch it; gives up the atomic rename."),
 ) -> None:
@@ -116,8 +116,9 @@ def bench_synthetic_command(
     resolution: list[str] = typer.Option(["640x480"], "--resolution", help="WIDTHxHEIGHT; repeat for several."),
     image_format: list[ImageFormatChoice] = typer.Option([ImageFormatChoice.png], "--image-format", case_sensitive=False, help="png, jpeg or raw; repeat for several."),
     odometry: OdometryChoice = typer.Option(OdometryChoice.simulated, "--odometry", case_sensitive=False, help="simulated or vo."),
-    workdir: Path = typer.Option(Path("bench-out"), "--workdir", help="Folder for the recorded log (overwritten)."),
+    workdir: Path = typer.Option(Path("bench-out"), "--workdir", help="Scratch folder for the recorded log (a scratch file, always overwritten)."),
     output: Path = typer.Option(Path("bench-out/synthetic_bench.json"), "-o", "--output", help="JSON results."),
+    force: bool = force_option("the JSON results"),
 ) -> None:
     import json
     from dataclasses import asdict
@@ -126,6 +127,8 @@ def bench_synthetic_command(
     from recorders.synthetic import SyntheticOptions, format_bench_results, run_synthetic_benchmark
 
     sizes = [parse_resolution(text) for text in resolution]
+    output.parent.mkdir(parents=True, exist_ok=True)
+    check_outputs(output, force=force)
     workdir.mkdir(parents=True, exist_ok=True)
     results = []
     for width_px, height_px in sizes:
@@ -133,6 +136,5 @@ def bench_synthetic_command(
             options = SyntheticOptions(frames=frames, width_px=width_px, height_px=height_px, image_format=fmt.value, odometry=odometry.value)  # type: ignore[arg-type]
             results.append(run_synthetic_benchmark(workdir, options))
             typer.echo(format_bench_results(results[-1:]).splitlines()[-1] if len(results) > 1 else format_bench_results(results))
-    output.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(output, json.dumps([asdict(r) for r in results], indent=2) + "\n")
     typer.echo(f"wrote {output}")

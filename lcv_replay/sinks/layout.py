@@ -95,7 +95,7 @@ def anchor_to_first(reference: np.ndarray, first_pose: np.ndarray) -> np.ndarray
     reference = np.asarray(reference, dtype=np.float64)
     if len(reference) == 0:
         return reference.copy()
-    T = se2.compose(np.asarray(first_pose, dtype=np.float64), se2.inverse(reference[0]))
+    T = se2.compose(np.asarray(first_pose, dtype=np.float64), se2.between(reference[0], np.zeros(3)))  # reference[0]⁻¹
     return se2.compose(T, reference)
 
 

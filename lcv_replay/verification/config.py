@@ -18,7 +18,7 @@ class BaselineConfig:
 
     solve_every: Literal["window", "end"] = "end"  # "end": one batch solve in result() (the classic set-up); "window": re-solve at every window end so a replay shows it evolving (about 3x the time on KITTI 00; GNC on Manhattan-1000 takes minutes per solve)
     accept_chi2: float = 7.81  # accept a loop whose whitened chi2 at the solution is below chi2(3 dof, 0.95)
-    dcs_phi: float = 100.0  # DCS Φ; Φ = 1 accepts nothing on robustslam_kitti (issue 3)
+    dcs_phi: float = 100.0  # DCS Φ; Φ = 1 accepts nothing on robustslam_kitti (docs/verification-bench.md)
     gm_c: float = 10.0  # Geman-McClure c (c² = 100); c = 1 accepts nothing on robustslam_kitti
     cauchy_c: float = 1.0  # Cauchy c
     gnc_weights_tol: float = 1e-9  # GTSAM's default 1e-4 stops GNC-TLS with every weight ~1e-5
@@ -79,7 +79,7 @@ class IlvPlusConfig:
 class VerificationConfig:
     """Multi-model hypothesize-and-verify (method ``ilv``) and its improved variant ``ilv+``."""
 
-    method: str = "ilv+"  # verifier name (registry); ilv+ measures better than the paper's ilv (issue 3)
+    method: str = "ilv+"  # verifier name (registry); ilv+ measures better than the paper's ilv (docs/verification-bench.md)
     consistency_radius_m: float = 10.0  # T_p: constraint consistent if endpoints closer (sec. II-A)
     window_frames: int = 500  # W: time-window length in frames (sec. II-D)
     iterations_per_window: int = 10  # generation iterations per window (sec. II-D)

@@ -21,7 +21,7 @@ from recorders.g2o import (
     load_true_loops,
     prepare_g2o,
 )
-from tests.conftest import SHARED_DATA, shared_path
+from tests.shared_data import SHARED_DATA, shared_path
 
 ROBUSTSLAM_GRAPHS = sorted(SHARED_DATA.glob("robustslam_kitti/*/*.g2o"))
 VERTIGO_GRAPHS = sorted(p for p in SHARED_DATA.glob("vertigo/**/*") if p.suffix in (".g2o", ".dat"))

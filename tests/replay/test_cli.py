@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -156,3 +155,25 @@ def test_the_oracle_on_a_log_without_truth_is_refused_before_the_first_frame(squ
     code, out = _cli([str(log), "--method", "oracle", "-c", str(config), "--no-rerun", "--quiet"])
     _assert_one_line_error(code, out, "no_truth.mcap", "method 'oracle' needs the log's true loops", "--true-loops")
     assert "accepted" not in out  # refused up front: no summary
+
+
+def test_an_existing_output_is_refused_without_force_and_replaced_with_it(square, tmp_path):
+    _, log, config = square
+    out = tmp_path / "kept.rrd"
+    out.write_bytes(b"an earlier recording")
+    code, text = _cli([str(log), "-c", str(config), "--save", str(out), "--quiet"])
+    _assert_one_line_error(code, text, "kept.rrd", "already exists", "--force")
+    assert out.read_bytes() == b"an earlier recording"  # refused before the replay touched anything
+    code, text = _cli([str(log), "-c", str(config), "--save", str(out), "--quiet", "-f"])
+    assert code == 0, text
+    assert out.stat().st_size > 1000 and out.read_bytes()[:4] != b"an e"
+
+
+def test_the_default_recording_beside_the_log_is_replaced_by_each_run(square, tmp_path):
+    """Only files the user names need --force: replaying twice into the default LOG.rrd works."""
+    _, log, config = square
+    default = log.with_suffix(".rrd")
+    for _ in range(2):
+        code, text = _cli([str(log), "-c", str(config), "--quiet"])
+        assert code == 0, text
+        assert default.stat().st_size > 1000

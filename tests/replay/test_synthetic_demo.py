@@ -21,7 +21,7 @@ from lcv_replay.sinks import blueprint as bp
 from lcv_replay.sinks.config import RerunOutputs
 from lcv_replay.sinks.rerun_sink import RerunSink
 from lcv_replay.sinks.summary import SummarySink
-from tests.replay.helpers import column, last_row, read_rrd, write_config
+from tests.replay.helpers import last_row, read_rrd, write_config
 
 FRAMES = 120
 SEED = 3

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 from lcv_replay.cli import app
 from lcv_replay.log.writer import LogWriter
 from lcv_replay.records import Pose2D
-from tests.conftest import shared_path
+from tests.shared_data import shared_path
 
 runner = CliRunner()
 

@@ -10,7 +10,7 @@ from lcv_replay.log.reader import open_log
 from lcv_replay.retrieval.cache import DescribeStats, describe_frames, log_cache_key
 from lcv_replay.retrieval.config import RetrievalConfig
 from lcv_replay.retrieval.retriever import Retriever
-from tests.retrieval.conftest import DESCRIPTOR_CACHE_DIRS
+from tests.retrieval.helpers import DESCRIPTOR_CACHE_DIRS
 
 
 def test_rerun_on_the_same_log_reads_the_cache(lite0_backend, corridor_log, corridor_descriptors):

@@ -7,14 +7,17 @@ import dataclasses
 import numpy as np
 import pytest
 
+from lcv_replay import se2
 from lcv_replay.records import LoopCandidate, Pose2D
+from lcv_replay.verification.base import ConstraintHistory, default_informations
 from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.hypotheses import Hypothesis
-from lcv_replay import se2
+from lcv_replay.verification.ilv import PlusModel
+from lcv_replay.verification.measurements import OdometryChain, loop_measurement
 from lcv_replay.verification.registry import available_methods, make_verifier
-from tests.conftest import shared_path
+from tests.shared_data import shared_path
+from tests.verification.helpers import SMALL, candidates_by_query, feed, feed_frames
 from tests.verification.ilv_synthetic import ODOM_INFORMATION, circle_world
-from tests.verification.test_incremental import SMALL, candidates_by_query, feed, feed_frames
 
 #: A measured loop (relative pose from geometric verification): sigma 10 cm, 10 cm, 0.01 rad.
 MEASURED_INFORMATION = (100.0, 0.0, 0.0, 100.0, 0.0, 10000.0)
@@ -24,6 +27,17 @@ def _measured(world, query: int, match: int) -> LoopCandidate:
     """A candidate carrying the true relative pose, as robustslam_kitti's true loops do."""
     rel = se2.between(world.truth[match], world.truth[query])
     return LoopCandidate(query, match, T_match_query=Pose2D(*rel), information=MEASURED_INFORMATION, source="synthetic")
+
+
+def _plus_model(world, loops: list[LoopCandidate]):
+    """The ilv+ model over the whole odometry with ``loops`` admitted (ids in list order), its
+    closure rounds off so that member sets stay as given; returns ``(model, constraints)``."""
+    config = dataclasses.replace(SMALL, ilv_plus=dataclasses.replace(SMALL.ilv_plus, closure_rounds=0))
+    chain = OdometryChain(ODOM_INFORMATION)
+    chain.extend(world.odom)
+    history = ConstraintHistory(default_informations(config, ODOM_INFORMATION)[1])
+    history.admit(loops, len(world.odom))
+    return PlusModel(chain, history, config), history.constraints
 
 
 def _ate(a: np.ndarray, b: np.ndarray) -> float:
@@ -90,13 +104,7 @@ def test_innovation_covariance_matches_gtsam_marginals():
     loops = [_measured(world, q, q - world.frames_per_lap) for q in range(world.frames_per_lap + 5, len(world.odom), 10)]
     bad = loops[14]
     loops[14] = dataclasses.replace(bad, T_match_query=Pose2D(bad.T_match_query.x_m + 1.5, bad.T_match_query.y_m - 1.0, bad.T_match_query.yaw_rad))
-    verifier = make_verifier("ilv+", SMALL, odometry_information=ODOM_INFORMATION)
-    for k, pose in enumerate(world.odom):
-        verifier.add_frame(k, Pose2D(*pose))
-        verifier.add_candidates([c for c in loops if c.query_frame == k])
-    verifier._flush()  # the verifier appends buffered odometry to its chain at window ends
-    model = verifier.model
-    model.plus = dataclasses.replace(model.plus, closure_rounds=0)  # keep the member sets as given
+    model, cons = _plus_model(world, loops)
     root = Hypothesis(0, None, (), 0, np.zeros(1, dtype=np.int64), world.odom[:1].copy())
     members = (2, 6, 10, 12, 13)
     without = model.solve(root, members, hypothesis_id=1, window=0, added=13)
@@ -104,7 +112,6 @@ def test_innovation_covariance_matches_gtsam_marginals():
     innovation = model.mahalanobis(without, np.array([14]))[0][0]
     in_sample = model.mahalanobis(with_bad, np.array([14]))[1][0]
     # the same innovation from GTSAM: full graph, marginal covariance of (x_m, x_q)
-    cons = verifier.history.constraints
     graph = pg.build_graph(world.odom, ODOM_INFORMATION, [cons[c] for c in members], loop_default_information=ODOM_INFORMATION)
     full = pg.optimise_lm(graph, world.odom).poses
     c14 = cons[14]
@@ -113,7 +120,7 @@ def test_innovation_covariance_matches_gtsam_marginals():
     ).fullMatrix()
     rel = gtsam.Pose2(*full[c14.match_frame]).between(gtsam.Pose2(*full[c14.query_frame]))
     jac = np.hstack([-rel.inverse().AdjointMap(), np.eye(3)])
-    z, info = pg.loop_measurement(c14, ODOM_INFORMATION)
+    z, info = loop_measurement(c14, ODOM_INFORMATION)
     r = gtsam.Pose2.Logmap(gtsam.Pose2(*z).between(rel))
     expected = r @ np.linalg.solve(np.linalg.inv(info) + jac @ joint @ jac.T, r)
     assert innovation == pytest.approx(expected, rel=0.05)
@@ -131,15 +138,8 @@ def test_leave_one_out_equals_the_chi2_drop_of_removing_the_loop():
     loops = [_measured(world, q, q - world.frames_per_lap) for q in range(world.frames_per_lap + 5, n - 40, 10)]
     # a false "same place" loop from the last frame to a place 7.5 m away along the lap
     loops.append(LoopCandidate(n - 1, n - 1 - world.frames_per_lap + 4, T_match_query=Pose2D(0.0, 0.0, 0.0), information=MEASURED_INFORMATION))
-    verifier = make_verifier("ilv+", SMALL, odometry_information=ODOM_INFORMATION)
-    for k, pose in enumerate(world.odom):
-        verifier.add_frame(k, Pose2D(*pose))
-        verifier.add_candidates([c for c in loops if c.query_frame == k])
-    verifier._flush()
-    model = verifier.model
-    model.plus = dataclasses.replace(model.plus, closure_rounds=0)
+    model, cons = _plus_model(world, loops)
     root = Hypothesis(0, None, (), 0, np.zeros(1, dtype=np.int64), world.odom[:1].copy())
-    cons = verifier.history.constraints
     true_ids = tuple(range(len(loops) - 1))
 
     def chi2_drop(members, c):

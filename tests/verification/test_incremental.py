@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 
 import numpy as np
@@ -10,46 +9,12 @@ import pytest
 
 from lcv_replay.errors import VerificationError
 from lcv_replay.records import LoopCandidate, Pose2D
-from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.ilv import PaperModel
 from lcv_replay.verification.incremental import ABSORBED, IncrementalVerifier
 from lcv_replay.verification.pose_graph import OptimisationFailed
 from lcv_replay.verification.registry import make_verifier
+from tests.verification.helpers import SMALL, feed
 from tests.verification.ilv_synthetic import ODOM_INFORMATION, circle_world
-
-SMALL = VerificationConfig(window_frames=100, iterations_per_window=3, hypotheses_per_iteration=3, max_hypotheses=8)
-SMALL = dataclasses.replace(
-    SMALL, ilv_plus=dataclasses.replace(SMALL.ilv_plus, iterations_per_window=3, hypotheses_per_iteration=3, max_hypotheses=8)
-)
-
-
-def candidates_by_query(candidates) -> dict[int, list[LoopCandidate]]:
-    """Candidates keyed by their query frame (the frame at which they arrive)."""
-    by_query: dict[int, list[LoopCandidate]] = {}
-    for c in candidates:
-        by_query.setdefault(c.query_frame, []).append(c)
-    return by_query
-
-
-def feed_frames(verifier, odom, by_frame: dict[int, list[LoopCandidate]]):
-    """Feed odometry poses frame by frame, with ``by_frame[k]`` added at frame ``k``; returns the steps."""
-    steps = []
-    for k, pose in enumerate(odom):
-        verifier.add_frame(k, Pose2D(*pose))
-        verifier.add_candidates(by_frame.get(k, []))
-        step = verifier.step()
-        if step is not None:
-            steps.append(step)
-    return steps
-
-
-def feed(verifier, world, *, extra: dict[int, list[LoopCandidate]] | None = None):
-    """Feed ``world`` frame by frame; returns the steps."""
-    by_query = candidates_by_query(world.candidates)
-    for k, extra_list in (extra or {}).items():
-        by_query.setdefault(k, []).extend(extra_list)
-    return feed_frames(verifier, world.odom, by_query)
-
 
 @pytest.fixture(scope="module")
 def world():
@@ -80,15 +45,16 @@ def test_windows_and_last_partial_window(run, world):
 
 
 def test_table_equals_full_recomputation(run):
-    verifier, _, _ = run
+    verifier, steps, _ = run
     all_ids = np.arange(len(verifier.history), dtype=np.int64)
     ids = verifier.table.hypothesis_ids
     recomputed = np.stack([verifier.model.evaluate(verifier.hypotheses[h], all_ids)[0] for h in ids])
     np.testing.assert_array_equal(verifier.table.matrix(ids), recomputed)
     for h, row in zip(ids, recomputed):
         assert verifier.table.score(h) == int(row.sum())
-    # each (hypothesis, constraint) entry was computed once: rows of every hypothesis ever kept
-    assert verifier.table.entries_computed <= len(all_ids) * (verifier._next_id + 1)
+    # each (hypothesis, constraint) entry was computed once: rows of every hypothesis ever created
+    created = 1 + max([h.id for s in steps for h in s.new_hypotheses] + [h for s in steps for h, _ in s.dropped] + [0])
+    assert verifier.table.entries_computed <= len(all_ids) * (created + 1)
 
 
 def test_selection_draws_only_inconsistent_constraints(run):
@@ -200,7 +166,6 @@ def test_ilv_plus_best_hypothesis_absorbs_after_the_iterations(monkeypatch):
     """At each window end the top hypotheses absorb first; the rank-1 hypothesis the iterations
     produced absorbs too (once), so a loop that arrived in the window is not lost to the budget."""
     from lcv_replay.verification.ilv import PlusModel
-    from tests.verification.ilv_synthetic import ODOM_INFORMATION, circle_world
 
     events: list[tuple[str, int, int, bool]] = []  # (kind, window, parent id, parent was rank 1)
     verifier = make_verifier("ilv+", SMALL, odometry_information=ODOM_INFORMATION)

@@ -13,9 +13,9 @@ from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.noise_scale import MAX_DOF, calibrated_gate, fit_noise
 from lcv_replay import se2
 from lcv_replay.verification.registry import make_verifier
-from tests.conftest import shared_path
+from tests.shared_data import shared_path
 from tests.verification.ilv_synthetic import circle_world
-from tests.verification.test_incremental import SMALL, candidates_by_query, feed, feed_frames
+from tests.verification.helpers import SMALL, candidates_by_query, feed, feed_frames
 
 CHI2_3_Q999 = 16.266  # chi-square quantile, 3 dof, 0.999
 
@@ -112,8 +112,9 @@ def test_calibration_rewrites_the_table_consistently():
     assert model.gate_chi2 < SMALL.ilv_plus.gate_chi2 and model.noise_fit is not None
     all_ids = np.arange(len(verifier.history), dtype=np.int64)
     for h in verifier.table.hypothesis_ids:
-        row, support = model._evaluate(verifier.hypotheses[h], all_ids)
-        assert np.array_equal(verifier.table.row(h), row)
+        # in reverse order: a fresh evaluation, not the cached row of the whole history
+        row, support = model.evaluate(verifier.hypotheses[h], all_ids[::-1])
+        assert np.array_equal(verifier.table.row(h), row[::-1])
         assert verifier.table.support(h) == pytest.approx(float(support.sum()))
 
 
