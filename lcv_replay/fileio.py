@@ -142,3 +142,10 @@ def write_text_atomic(path: str | Path, text: str, *, force: bool = True) -> Pat
     with atomic_output(path, force=force) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return Path(path)
+
+
+def user_cache_dir(name: str) -> Path:
+    """``$LCV_CACHE_DIR/name``, else ``$XDG_CACHE_HOME/lcv-replay/name`` (``~/.cache/lcv-replay/name``)."""
+    if os.environ.get("LCV_CACHE_DIR"):
+        return Path(os.environ["LCV_CACHE_DIR"]) / name
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "lcv-replay" / name

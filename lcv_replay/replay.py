@@ -35,6 +35,7 @@ import numpy as np
 from lcv_replay.config import ReplayConfig, to_dict
 from lcv_replay.errors import ConfigError, ReplayError, VerificationError, require_seed
 from lcv_replay.evaluation.metrics import ate_rmse_m, detection_metrics, top_trajectory
+from lcv_replay.evaluation.revisits import RevisitRecall, revisit_recall
 from lcv_replay.evaluation.truth import ConstraintTruth, choose_truth_source, provide_truth
 from lcv_replay.pacing import Clock, Pacer, PacingReport, SystemClock
 from lcv_replay.records import Frame, FrameWindow, LoopCandidate
@@ -231,7 +232,7 @@ def _prepare(options: ReplayOptions) -> _Setup:
         seed=config.verification.seed, config=to_dict(config), frames=window.frames, first_log_frame=window.first,
         start_ns=int(stamps[0]), log_duration_s=float(stamps[-1] - stamps[0]) / 1e9, log_metadata=dict(info.metadata),
         has_images=info.has_images, has_ground_truth=ground_truth is not None, truth_source=truth_source.value,
-        ground_truth=ground_truth, code_bits=config.retrieval.code_bits if retrieval is not None else None,
+        ground_truth=ground_truth, code_bits=config.retrieval.active_code_bits if retrieval is not None else None,
     )
     return _Setup(reader, config, source, window, verifier, retrieval, truth, start)
 
@@ -418,6 +419,7 @@ class _Run:
         accepted_ids = tuple(sorted(self.last_step.accepted_constraint_ids)) if self.last_step else ()
         d = metrics.detection
         duration = 0.0 if self.first_stamp is None else (self.last_stamp - self.first_stamp) / 1e9
+        revisits = self._revisits(accepted_ids)
         return RunSummary(  # the stable keys (docs/summary-json.md), then the context
             frames=self.frames, wall_time_s=wall_time_s, log_duration_s=duration, method=start.method,
             constraints=len(self.constraints), accepted=d.accepted, true_positives=d.true_positives,
@@ -426,4 +428,22 @@ class _Run:
             log=str(start.log_path), constraint_source=start.constraint_source, truth_source=self.truth.source.value,
             seed=start.seed, rate_requested=start.rate, setup_time_s=setup_time_s, interrupted=interrupted,
             accepted_constraint_ids=accepted_ids, rrd=None if rrd is None else str(rrd), config=dict(start.config),
+            revisits=None if revisits is None else revisits.revisits,
+            revisits_proposed=None if revisits is None else revisits.proposed,
+            revisits_closed=None if revisits is None else revisits.closed,
+            revisit_recall=None if revisits is None else revisits.recall,
+        )
+
+    def _revisits(self, accepted_ids: Sequence[int]) -> RevisitRecall | None:
+        """Recall against every ground-truth revisit of the frames replayed (None without ground truth)."""
+        if self.truth.ground_truth is None or self.frames == 0:
+            return None
+        config = self.setup.config
+        return revisit_recall(
+            np.asarray(self.truth.ground_truth)[: self.frames, :2],
+            [c.query_frame for c in self.constraints],
+            self.truth.flags[: len(self.constraints)],
+            accepted_ids,
+            radius_m=config.verification.consistency_radius_m,
+            exclusion_frames=config.retrieval.exclusion_frames,
         )

@@ -488,7 +488,8 @@ class RerunSink(BaseSink):
         l2 = np.asarray(update.l2_distances, dtype=np.float64).reshape(-1)
         if len(top):
             admitted = {int(c.match_frame) for c in update.candidates}
-            text = retrieval_markdown(frame.index, top, l2, update.hamming, admitted)
+            similarity = {int(c.match_frame): float(c.similarity) for c in update.candidates}
+            text = retrieval_markdown(frame.index, top, l2, update.hamming, admitted, [similarity.get(int(f)) for f in top])
             query = self._map.position_of(frame.index)
             ends = np.stack([np.broadcast_to(query, (len(top), 2)), self._map.positions_of(top)], axis=1)
         else:

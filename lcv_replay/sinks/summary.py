@@ -80,6 +80,11 @@ def format_summary(summary: RunSummary, record: "RunRecord | None" = None) -> st
         else:
             lines.append(f"  recall            {num(summary.recall, '.3f')} = {summary.true_positives} of {true_total} true "
                          f"constraints accepted ({summary.false_negatives} missed)")
+        if summary.revisits is not None:
+            lines.append(
+                f"  revisit recall    {num(summary.revisit_recall, '.3f')} = {summary.revisits_closed} of {summary.revisits} "
+                f"revisits closed ({summary.revisits_proposed} proposed); a revisit: within T_p of a frame > Δt earlier"
+            )
     else:
         lines.append("  precision/recall  n/a: the log has neither loop labels nor ground truth")
     lines.append(
