@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Post-mortem on field data: KITTI 00 with DLoopDetector loop candidates at alpha 0.50
-# (robustslam_kitti, ../shared/data). Walk-through: examples/postmortem_kitti00.md.
+# (robustslam_kitti). The data folder is $LCV_SHARED_DATA, else ../shared/data beside the
+# repository (the project's checkout layout). Walk-through: examples/postmortem_kitti00.md.
 set -euo pipefail
 DATA="${LCV_SHARED_DATA:-$(dirname "$0")/../../shared/data}/robustslam_kitti/00"
 OUT="${1:-kitti00}"
@@ -13,8 +14,8 @@ lcv-replay record g2o "$DATA/kitti_00_alpha_0.50.g2o" -o "$OUT/kitti00_a050.mcap
 
 # 2. Replay it with the paper's method and with the improved one (ilv+, the default).
 #    Each also writes its results for other tools (--export) and an HTML report (--report).
-lcv-replay "$OUT/kitti00_a050.mcap" --method ilv --save "$OUT/kitti00_ilv.rrd" --export "$OUT/kitti00_ilv" --report "$OUT/kitti00_ilv.html"
-lcv-replay "$OUT/kitti00_a050.mcap" --method ilv+ --save "$OUT/kitti00_ilvplus.rrd" --export "$OUT/kitti00_ilvplus" --report "$OUT/kitti00_ilvplus.html"
+lcv-replay "$OUT/kitti00_a050.mcap" --method ilv --save "$OUT/kitti00_ilv.rrd" --export "$OUT/kitti00_ilv" --report "$OUT/kitti00_ilv.html" --force
+lcv-replay "$OUT/kitti00_a050.mcap" --method ilv+ --save "$OUT/kitti00_ilvplus.rrd" --export "$OUT/kitti00_ilvplus" --report "$OUT/kitti00_ilvplus.html" --force
 
 # 3. The wrong loop closures, and when they entered, straight from the recording.
 python "$(dirname "$0")/list_wrong_loops.py" "$OUT/kitti00_ilv.rrd"

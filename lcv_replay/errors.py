@@ -10,6 +10,7 @@ Messages name the file or value, the problem, and the fix, e.g.::
 
 from __future__ import annotations
 
+import numbers
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +53,22 @@ def require(condition: bool, key: str, value: Any, expected: str) -> None:
     """
     if not condition:
         raise ConfigError(f"config key '{key}' = {value!r} is out of range", fix=f"use {expected}")
+
+
+#: Seeds are integers in ``[0, 2**63)``: what numpy's generators, TOML and JSON (int64) all hold.
+SEED_LIMIT = 2**63
+
+
+def require_seed(value: Any, name: str) -> int:
+    """The one rule for every seed (``--seed``, ``[verification] seed``, ``[retrieval] seed``,
+    ``record g2o --seed``, suite files, ...): an integer ``0 <= seed < 2**63``.
+
+    ``name`` says where the seed came from (``"--seed"``, ``"config key 'verification.seed'"``).
+    Raises :class:`ConfigError` with the one message for a bad seed.
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not 0 <= value < SEED_LIMIT:
+        raise ConfigError(f"invalid seed {value!r} for {name}", fix="a seed is an integer from 0 to 2**63 - 1")
+    return int(value)
 
 
 class LogFormatError(LcvError):

@@ -1,7 +1,7 @@
 """Self-contained HTML pages: no script, no network fetch, figures inlined as base64 PNG.
 
-Shared by the fleet pages (``fleet.html``, ``compare.html``) and meant for every HTML output
-(the per-run report can use the same helpers): one style, one way to escape, tabulate and embed a
+Shared by every HTML output: the fleet pages (``fleet.html``, ``compare.html``) and the per-run
+report (``lcv_replay.report.html``): one style, one way to escape, tabulate and embed a
 matplotlib figure. The same input gives the same bytes (PNG metadata without a timestamp).
 """
 
@@ -21,10 +21,10 @@ h1 { font-size: 22px; margin-bottom: 4px; } h2 { font-size: 18px; margin-top: 32
 table { border-collapse: collapse; font-size: 13px; margin: 8px 0; }
 td, th { border: 1px solid #ddd; padding: 3px 8px; text-align: left; vertical-align: top; }
 th { background: #f4f4f4; } td.num { text-align: right; font-variant-numeric: tabular-nums; }
-tr.bad td { background: #fff1f0; } tr.good td { background: #f3fbf4; } tr.muted td { color: #777; }
+tr.bad td { background: #fff1f0; } tr.good td { background: #f3fbf4; } tr.muted td { color: #777; } td.why { color: #555; }
 figure { margin: 12px 0; } figure img { max-width: 100%; border: 1px solid #eee; }
 figcaption { font-size: 13px; color: #444; } code { background: #f4f4f4; padding: 0 3px; }
-.muted { color: #777; }
+details summary { cursor: pointer; color: #3b6fd4; } .muted { color: #777; }
 """
 
 

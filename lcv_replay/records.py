@@ -97,13 +97,16 @@ class LoopCandidate:
     Attributes:
         query_frame: the later frame (the query); ``query_frame > match_frame``.
         match_frame: the earlier, revisited frame.
-        similarity: place-recognition similarity score, larger is more similar (source-specific).
+        similarity: place-recognition similarity score, larger is more similar (source-specific;
+            our retrieval's is in [0, 1], see lcv_replay.retrieval.similarity).
         hamming: Hamming distance of the binary codes, where retrieval produced the candidate.
         source: who proposed it, e.g. ``"retrieval"``, ``"DLoopDetector"``, ``"injected"``.
         T_match_query: measured pose of the query frame in the match frame, if the source gives
             one (g2o candidates do); ``None`` means "same place", identity with config noise.
         information: upper triangle ``(I_xx, I_xy, I_xθ, I_yy, I_yθ, I_θθ)`` of the 3x3
             information matrix of ``T_match_query`` (g2o order), or ``None``.
+        l2_distance: the re-rank L2 distance of the descriptors, where retrieval produced the
+            candidate, else ``None``.
     """
 
     query_frame: int
@@ -113,6 +116,7 @@ class LoopCandidate:
     source: str = "unknown"
     T_match_query: Pose2D | None = None
     information: tuple[float, float, float, float, float, float] | None = None
+    l2_distance: float | None = None
 
     @property
     def pair(self) -> tuple[int, int]:

@@ -8,8 +8,10 @@
 * **pacing**, as ``ros2 bag play``: ``rate`` 1.0 is real time by the log's timestamps, ``None`` as
   fast as possible (the :class:`~lcv_replay.pacing.Pacer`, against an injectable clock); falling
   behind is reported (achieved versus requested rate), never silent;
-* **shutdown**: Ctrl-C (SIGINT) stops after the current frame; the sinks still get the summary (as
-  of the last completed window) and are closed, so the .rrd is finalised and the JSON written.
+* **shutdown**: Ctrl-C (SIGINT) or SIGTERM stops after the current frame; the sinks still get the
+  summary (as of the last completed window) and are closed, so the .rrd is finalised and the JSON
+  written. A second signal aborts at once and the sinks remove their temp files
+  (:mod:`lcv_replay.shutdown`).
 
 Frame indices inside a replay are *replay-local*: with ``--start-offset`` the first replayed frame
 is 0, and candidates that point before it are dropped. The reader computes the time window once
@@ -24,8 +26,6 @@ import contextlib
 import dataclasses
 import logging
 import math
-import signal
-import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterable, Iterator, Literal, Sequence
@@ -33,11 +33,13 @@ from typing import TYPE_CHECKING, Any, Iterable, Iterator, Literal, Sequence
 import numpy as np
 
 from lcv_replay.config import ReplayConfig, to_dict
-from lcv_replay.errors import ConfigError, ReplayError
+from lcv_replay.errors import ConfigError, ReplayError, VerificationError, require_seed
 from lcv_replay.evaluation.metrics import ate_rmse_m, detection_metrics, top_trajectory
+from lcv_replay.evaluation.revisits import RevisitRecall, revisit_recall
 from lcv_replay.evaluation.truth import ConstraintTruth, choose_truth_source, provide_truth
 from lcv_replay.pacing import Clock, Pacer, PacingReport, SystemClock
 from lcv_replay.records import Frame, FrameWindow, LoopCandidate
+from lcv_replay.shutdown import StopToken, stop_on_signals
 from lcv_replay.sinks.base import FrameUpdate, RunStart, RunSummary, Sink, SinkGroup, StepMetrics, StepUpdate
 from lcv_replay.verification.base import Constraint, Verifier, VerifierStep, result_step
 from lcv_replay.verification.config import VerificationConfig
@@ -91,6 +93,8 @@ class ReplayOptions:
         _check_option(math.isfinite(self.start_offset_s) and self.start_offset_s >= 0, "--start-offset", self.start_offset_s, "seconds >= 0")
         if self.duration_s is not None:
             _check_option(math.isfinite(self.duration_s) and self.duration_s > 0, "--duration", self.duration_s, "seconds > 0")
+        if self.seed is not None:
+            require_seed(self.seed, "--seed")
         if self.constraints is not None and self.constraints not in CONSTRAINT_SOURCES:
             raise ConfigError(f"--constraints {self.constraints!r} is not allowed", fix="use images, log or both")
 
@@ -144,42 +148,8 @@ def resolve_constraint_source(requested: str | None, *, has_images: bool, has_ca
 
 
 # --------------------------------------------------------------------------------------- shutdown
-class StopToken:
-    """Set by Ctrl-C (or a test) to stop the replay after the current frame."""
-
-    def __init__(self) -> None:
-        self._event = threading.Event()
-
-    def request(self) -> None:
-        self._event.set()
-
-    @property
-    def requested(self) -> bool:
-        return self._event.is_set()
-
-
-@contextlib.contextmanager
-def sigint_requests_stop(token: StopToken, *, what: str = "stopping after this frame and finalising the outputs") -> Iterator[None]:
-    """While active, the first SIGINT sets ``token`` (and logs ``what`` happens now); a second one
-    raises ``KeyboardInterrupt``.
-
-    Only possible in the main thread; elsewhere this does nothing (the caller's token still works).
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, frame):  # noqa: ARG001 - signal handler signature
-        if token.requested:
-            raise KeyboardInterrupt
-        token.request()
-        logger.warning("Ctrl-C: %s (Ctrl-C again to hurry)", what)
-
-    previous = signal.signal(signal.SIGINT, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
+#: The first SIGINT *or SIGTERM* sets the token; a second aborts (:func:`lcv_replay.shutdown.stop_on_signals`).
+sigint_requests_stop = stop_on_signals
 
 
 # --------------------------------------------------------------------------------------- the replay
@@ -216,6 +186,10 @@ def _prepare(options: ReplayOptions) -> _Setup:
     path = Path(options.log_path)
     reader = (options.open_reader or open_log)(path, recover=options.recover)
     info = reader.info
+    if info.recorder_warnings:
+        from lcv_replay.log.format import describe_warnings
+
+        logger.warning("%s was recorded with warnings: %s", path, describe_warnings(info.recorder_warnings))
     if not info.has_odometry:
         raise ReplayError(
             "the log has no odometry (/odom): the verifier needs it",
@@ -258,7 +232,7 @@ def _prepare(options: ReplayOptions) -> _Setup:
         seed=config.verification.seed, config=to_dict(config), frames=window.frames, first_log_frame=window.first,
         start_ns=int(stamps[0]), log_duration_s=float(stamps[-1] - stamps[0]) / 1e9, log_metadata=dict(info.metadata),
         has_images=info.has_images, has_ground_truth=ground_truth is not None, truth_source=truth_source.value,
-        ground_truth=ground_truth, code_bits=config.retrieval.code_bits if retrieval is not None else None,
+        ground_truth=ground_truth, code_bits=config.retrieval.active_code_bits if retrieval is not None else None,
     )
     return _Setup(reader, config, source, window, verifier, retrieval, truth, start)
 
@@ -273,9 +247,11 @@ def replay(
 ) -> RunSummary:
     """Replay ``options.log_path`` into ``sinks``; returns the run summary (also given to the sinks).
 
-    ``clock`` paces the frames (default: the wall clock); ``stop`` (or Ctrl-C when
+    ``clock`` paces the frames (default: the wall clock); ``stop`` (or Ctrl-C or SIGTERM when
     ``handle_sigint``) ends the replay after the current frame with a summary as of the last
-    completed window. Every sink is closed on the way out, whatever happens.
+    completed window; ``stop.exit_code`` then says which signal it was. A second signal raises
+    :class:`~lcv_replay.shutdown.Interrupted`. Every sink is closed on the way out, whatever
+    happens.
 
     Raises:
         LogFormatError: the log is missing or malformed.
@@ -285,7 +261,10 @@ def replay(
     clock = clock or SystemClock()
     stop = stop or StopToken()
     group = SinkGroup(sinks)
-    with group.opened():
+    # The handlers stay until the sinks are closed: a first signal while the outputs are finalised
+    # still lets them finish; a second aborts (Interrupted) and the sinks drop their temp files.
+    guard = stop_on_signals(stop) if handle_sigint else contextlib.nullcontext()
+    with guard, group.opened():
         setup_started = clock.now()
         setup = _prepare(options)
         start = setup.start
@@ -299,9 +278,7 @@ def replay(
         pairs = setup.pairs()
         setup_s = clock.now() - setup_started
         run.loop_started = clock.now()
-        guard = sigint_requests_stop(stop) if handle_sigint else contextlib.nullcontext()
-        with guard:
-            interrupted, pacing = _drive(pairs, run, Pacer(options.rate, clock), stop)
+        interrupted, pacing = _drive(pairs, run, Pacer(options.rate, clock), stop)
         wall_s = clock.now() - run.loop_started
         if setup.retrieval is not None and not interrupted and setup.retrieval.warmup_message():
             logger.warning("%s", setup.retrieval.warmup_message())
@@ -314,8 +291,11 @@ def replay(
 
 
 def _drive(pairs: Iterable[tuple[Frame, np.ndarray | None]], run: _Run, pacer: Pacer, stop: StopToken) -> tuple[bool, PacingReport]:
-    """The frame loop, then the verifier's final window; returns (interrupted, pacing report)."""
-    pacing: PacingReport | None = None
+    """The frame loop, then the verifier's final window; returns (interrupted, pacing report).
+
+    A numerical breakdown of the verifier (degenerate odometry or constraints in the log) is one
+    :class:`VerificationError` naming the frame, not a traceback.
+    """
     try:
         for frame, descriptor in pairs:
             if stop.requested:
@@ -329,8 +309,13 @@ def _drive(pairs: Iterable[tuple[Frame, np.ndarray | None]], run: _Run, pacer: P
         pacing = pacer.report()
         run.finish()
         return False, pacing
-    except KeyboardInterrupt:  # a second Ctrl-C: stop at once, summarise what is there
-        return True, pacing or pacer.report()
+    except np.linalg.LinAlgError as exc:
+        raise VerificationError(
+            f"the verifier failed numerically after {run.frames} frames ({exc}): the log's odometry or loop "
+            "constraints are degenerate",
+            path=run.setup.start.log_path,
+            fix="check them with 'lcv-replay info', or try another --method",
+        ) from None
 
 
 class _Run:
@@ -434,6 +419,7 @@ class _Run:
         accepted_ids = tuple(sorted(self.last_step.accepted_constraint_ids)) if self.last_step else ()
         d = metrics.detection
         duration = 0.0 if self.first_stamp is None else (self.last_stamp - self.first_stamp) / 1e9
+        revisits = self._revisits(accepted_ids)
         return RunSummary(  # the stable keys (docs/summary-json.md), then the context
             frames=self.frames, wall_time_s=wall_time_s, log_duration_s=duration, method=start.method,
             constraints=len(self.constraints), accepted=d.accepted, true_positives=d.true_positives,
@@ -442,4 +428,22 @@ class _Run:
             log=str(start.log_path), constraint_source=start.constraint_source, truth_source=self.truth.source.value,
             seed=start.seed, rate_requested=start.rate, setup_time_s=setup_time_s, interrupted=interrupted,
             accepted_constraint_ids=accepted_ids, rrd=None if rrd is None else str(rrd), config=dict(start.config),
+            revisits=None if revisits is None else revisits.revisits,
+            revisits_proposed=None if revisits is None else revisits.proposed,
+            revisits_closed=None if revisits is None else revisits.closed,
+            revisit_recall=None if revisits is None else revisits.recall,
+        )
+
+    def _revisits(self, accepted_ids: Sequence[int]) -> RevisitRecall | None:
+        """Recall against every ground-truth revisit of the frames replayed (None without ground truth)."""
+        if self.truth.ground_truth is None or self.frames == 0:
+            return None
+        config = self.setup.config
+        return revisit_recall(
+            np.asarray(self.truth.ground_truth)[: self.frames, :2],
+            [c.query_frame for c in self.constraints],
+            self.truth.flags[: len(self.constraints)],
+            accepted_ids,
+            radius_m=config.verification.consistency_radius_m,
+            exclusion_frames=config.retrieval.exclusion_frames,
         )

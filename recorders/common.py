@@ -24,15 +24,18 @@ import contextlib
 import math
 import re
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Literal, Protocol, Sequence
 
 import numpy as np
 
 from lcv_replay.errors import RecorderError
+from lcv_replay.fileio import format_size
+from lcv_replay.log.format import describe_warnings
 from lcv_replay.se2 import wrap_angles
 from lcv_replay.records import LoopCandidate, Pose2D, StereoCalibration
+from lcv_replay.shutdown import raise_if_stopped, stop_requested
 
 #: ``R_body_camera`` for a camera with x right, y down, z forward (KITTI, OpenCV).
 R_BODY_CAMERA = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -61,6 +64,12 @@ class RecordStats:
     has_images: bool
     has_odometry: bool
     has_ground_truth: bool
+    frames_planned: int | None = None  # set when a stop request (Ctrl-C, SIGTERM) ended the recording early
+    warnings: dict[str, int] = field(default_factory=dict)  # what was accepted with a warning (format.RECORDER_WARNING_NAMES)
+
+    @property
+    def interrupted(self) -> bool:
+        return self.frames_planned is not None
 
     @property
     def frames_per_s(self) -> float:
@@ -75,20 +84,12 @@ class RecordStats:
             parts.append(f"{self.true_loops} true loops")
         if not self.has_odometry:
             parts.append("no odometry")
+        stopped = f" (INTERRUPTED: the first {self.frames} of {self.frames_planned} frames)" if self.interrupted else ""
+        warned = f"; warnings: {describe_warnings(self.warnings)}" if self.warnings else ""
         return (
             f"wrote {self.path}: {', '.join(parts)}, {format_size(self.size_bytes)} in {self.elapsed_s:.1f} s "
-            f"({self.frames_per_s:.0f} frames/s)"
+            f"({self.frames_per_s:.0f} frames/s){stopped}{warned}"
         )
-
-
-def format_size(size_bytes: int) -> str:
-    """``1234567 -> '1.2 MB'`` (decimal units, as ``ros2 bag info``)."""
-    size = float(size_bytes)
-    for unit in ("B", "kB", "MB", "GB"):
-        if size < 1000.0 or unit == "GB":
-            return f"{size:.0f} {unit}" if unit == "B" else f"{size:.1f} {unit}"
-        size /= 1000.0
-    raise AssertionError("unreachable")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -435,6 +436,7 @@ class LogHeader:
     odometry_information: np.ndarray | None = None
     image_format: ImageFormat = "png"
     jpeg_quality: int = 95
+    warnings: dict[str, int] | None = None  # counts of what the recorder accepted with a warning
 
 
 def make_frames(
@@ -523,6 +525,11 @@ def write_log(
     ``image_odometry(left, right)``, when given, computes each frame's odometry from its loaded
     images, in frame order (``--vo``: :class:`lcv_replay.vo.log_vo.ImageOdometry`), instead of
     ``frame.odom``.
+
+    A stop request (:func:`lcv_replay.shutdown.stop_requested`: Ctrl-C or SIGTERM) ends the loop
+    after the current frame and closes a valid, shorter log (the candidates and labels of the
+    written frames included); before the first frame it raises
+    :class:`~lcv_replay.shutdown.Interrupted` and writes nothing.
     """
     from concurrent.futures import ThreadPoolExecutor
 
@@ -553,6 +560,7 @@ def write_log(
                 image_format=header.image_format,
                 jpeg_quality=header.jpeg_quality,
                 odometry_information=header.odometry_information,
+                recorder_warnings=header.warnings,
                 live=live,
             )
         )
@@ -567,7 +575,12 @@ def write_log(
                 writer.declare_labels()
             if any(f.ground_truth is not None for f in frames):
                 writer.declare_ground_truth()
+        written = 0
         for i, frame in enumerate(frames):
+            if stop_requested():
+                if i == 0:
+                    raise_if_stopped()
+                break
             if pool is not None:
                 for k in range(i, min(n, i + prefetch + 1)):
                     if k not in pending:
@@ -582,17 +595,20 @@ def write_log(
             for query, match in labels_by_query.get(i, ()):
                 writer.write_true_loop(query, match, frame.stamp_ns)
             writer.flush()  # live: the frame is complete, a follower can read it now
+            written = i + 1
             if progress is not None and (has_images or i % 256 == 0 or i == n - 1):
                 progress(i + 1, n)
     out_path = Path(out_path)
     return RecordStats(
         path=out_path,
-        frames=n,
-        candidates=len(candidates),
-        true_loops=sum(len(v) for v in labels_by_query.values()),
+        frames=written,
+        candidates=sum(len(by_query.get(i, ())) for i in range(written)),
+        true_loops=sum(len(labels_by_query.get(i, ())) for i in range(written)),
         size_bytes=out_path.stat().st_size,
         elapsed_s=time.perf_counter() - started,
         has_images=has_images,
         has_odometry=image_odometry is not None or any(f.odom is not None for f in frames[:1]),
-        has_ground_truth=any(f.ground_truth is not None for f in frames),
+        has_ground_truth=any(f.ground_truth is not None for f in frames[:written]),
+        frames_planned=n if written < n else None,
+        warnings=dict(header.warnings or {}),
     )

@@ -39,7 +39,7 @@ from typing import Iterable, Literal
 import numpy as np
 
 from lcv_replay import se2
-from lcv_replay.errors import RecorderError
+from lcv_replay.errors import RecorderError, require_seed
 from lcv_replay.records import LoopCandidate, Pose2D
 from lcv_replay.se2 import Information6
 from recorders.common import (
@@ -109,6 +109,9 @@ class PoseGraph2D:
         loops: every edge that is not the chain edge ``k -> k+1``, as written (ids shifted to 0).
         vertices: ``(N, 3)`` vertex estimates (``VERTEX_SE2`` / node rows), or ``None``.
         id_offset: the smallest vertex id of the file (subtracted from every id).
+        chain_lines: ``(N - 1,)`` source line of each chain edge (0: from the vertices).
+        duplicate_edges: ``(line, earlier line)`` of each edge that joins the same two vertices
+            as an earlier edge (it is kept, as a loop candidate).
     """
 
     path: Path
@@ -117,6 +120,8 @@ class PoseGraph2D:
     loops: tuple[G2oEdge, ...]
     vertices: np.ndarray | None = None
     id_offset: int = 0
+    chain_lines: np.ndarray | None = None
+    duplicate_edges: tuple[tuple[int, int], ...] = ()
 
     @property
     def num_poses(self) -> int:
@@ -139,11 +144,48 @@ class PoseGraph2D:
         """The loop edges as candidates oriented (later, earlier), in file order."""
         return tuple(edge.as_candidate(source) for edge in self.loops)
 
-    def odometry_information_matrix(self) -> np.ndarray:
-        """``(3, 3)`` information of the first chain edge (identity if the graph has no edges)."""
+    def bad_odometry_information(self) -> np.ndarray:
+        """Indices of the chain edges whose information is singular or not positive definite."""
+        return np.flatnonzero(~positive_definite(self.odometry_information))
+
+    def bad_loop_information(self) -> list[G2oEdge]:
+        """The loop edges whose information is singular or not positive definite."""
+        ok = positive_definite(np.array([e.information for e in self.loops]).reshape(-1, 6))
+        return [edge for edge, good in zip(self.loops, ok) if not good]
+
+    def warnings(self) -> dict[str, int]:
+        """Counts of what the recorder accepts but warns about (keys of ``format.RECORDER_WARNING_NAMES``)."""
+        counts = {
+            "singular_odometry_information": len(self.bad_odometry_information()),
+            "singular_loop_information": len(self.bad_loop_information()),
+            "duplicate_edges": len(self.duplicate_edges),
+        }
+        return {key: n for key, n in counts.items() if n}
+
+    def odometry_information_matrix(self) -> np.ndarray | None:
+        """``(3, 3)`` information of the first chain edge whose information is positive definite.
+
+        Identity if the graph has no edges; ``None`` (the verifier's default) if no chain edge has a
+        usable one.
+        """
         if len(self.odometry_information) == 0:
             return np.eye(3)
-        return se2.information_matrix(tuple(self.odometry_information[0]))
+        good = np.flatnonzero(positive_definite(self.odometry_information))
+        if len(good) == 0:
+            return None
+        return se2.information_matrix(tuple(self.odometry_information[good[0]]))
+
+
+def positive_definite(upper6: np.ndarray) -> np.ndarray:
+    """``(M,)`` bool: each ``(M, 6)`` upper-triangle information is finite, symmetric positive definite."""
+    upper6 = np.asarray(upper6, dtype=np.float64).reshape(-1, 6)
+    if len(upper6) == 0:
+        return np.zeros(0, dtype=bool)
+    a, b, c, d, e, f = upper6.T
+    matrices = np.stack([np.stack([a, b, c], -1), np.stack([b, d, e], -1), np.stack([c, e, f], -1)], -2)
+    finite = np.isfinite(matrices).all(axis=(1, 2))
+    eig = np.linalg.eigvalsh(np.where(finite[:, None, None], matrices, np.eye(3)))
+    return finite & (eig[:, 0] > 1e-12 * np.maximum(eig[:, -1], 0.0)) & (eig[:, -1] > 0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -299,10 +341,19 @@ def _build_graph(path: Path, vertices: dict[int, tuple[float, float, float]], ed
 
     steps = np.full((num_poses - 1, 3), np.nan)
     step_info = np.zeros((num_poses - 1, 6))
+    chain_lines = np.zeros(num_poses - 1, dtype=np.int64)
     loops: list[G2oEdge] = []
+    first_line: dict[tuple[int, int], int] = {}
+    duplicates: list[tuple[int, int]] = []
     for edge in shifted:
+        pair = (min(edge.from_id, edge.to_id), max(edge.from_id, edge.to_id))
+        if pair in first_line:
+            duplicates.append((edge.line, first_line[pair]))
+        else:
+            first_line[pair] = edge.line
         lo = min(edge.from_id, edge.to_id)
         if abs(edge.to_id - edge.from_id) == 1 and np.isnan(steps[lo, 0]):
+            chain_lines[lo] = edge.line
             if edge.to_id > edge.from_id:
                 T, info = edge.T_from_to, edge.information
             else:
@@ -321,7 +372,37 @@ def _build_graph(path: Path, vertices: dict[int, tuple[float, float, float]], ed
             path=path,
             fix="the chain i -> i+1 must be complete (one graph per file)",
         )
-    return PoseGraph2D(path, steps, step_info, tuple(loops), vertex_array, first_id)
+    return PoseGraph2D(path, steps, step_info, tuple(loops), vertex_array, first_id, chain_lines, tuple(duplicates))
+
+
+def _warn_about(graph: PoseGraph2D) -> None:
+    """Log what the graph has that a user should know about (the counts go into the log, too)."""
+    bad = graph.bad_odometry_information()
+    if len(bad):
+        k = int(bad[0])
+        information = se2.information_matrix(tuple(graph.odometry_information[k]))
+        eigenvalues = np.round(np.linalg.eigvalsh(np.nan_to_num(information)), 6).tolist()
+        used = "the first chain edge with a positive-definite one" if graph.odometry_information_matrix() is not None else "none (the verifier's default odometry noise)"
+        log.warning(
+            "%s: %d odometry edges have a singular or non-positive-definite information matrix "
+            "(first: line %d, vertices %d -> %d, eigenvalues %s); the log's odometry information is %s",
+            graph.path, len(bad), int(graph.chain_lines[k]), k + graph.id_offset, k + 1 + graph.id_offset, eigenvalues, used,
+        )
+    bad_loops = graph.bad_loop_information()
+    if bad_loops:
+        edge = bad_loops[0]
+        log.warning(
+            "%s: %d loop edges have a singular or non-positive-definite information matrix (first: line %d, "
+            "vertices %d -> %d); verifiers refuse such a candidate when it arrives",
+            graph.path, len(bad_loops), edge.line, edge.from_id + graph.id_offset, edge.to_id + graph.id_offset,
+        )
+    if graph.duplicate_edges:
+        line, earlier = graph.duplicate_edges[0]
+        log.warning(
+            "%s: %d duplicate edges join the same two vertices as an earlier edge (first: line %d repeats line %d); "
+            "each is recorded as its own loop candidate",
+            graph.path, len(graph.duplicate_edges), line, earlier,
+        )
 
 
 def load_ground_truth(path: str | Path, num_poses: int) -> np.ndarray:
@@ -476,6 +557,7 @@ class G2oOptions:
             raise RecorderError(f"--rate-hz {self.rate_hz} must be a positive number", fix="pass e.g. --rate-hz 10")
         if self.start_stamp_ns < 0:
             raise RecorderError(f"--start-ns {self.start_stamp_ns} is negative", fix="pass a stamp >= 0")
+        require_seed(self.seed, "record g2o --seed")
         if self.loop_measurements not in ("as-recorded", "same-place"):
             raise RecorderError(f"--loop-measurements {self.loop_measurements!r} is unknown", fix="use as-recorded or same-place")
 
@@ -537,6 +619,7 @@ def prepare_g2o(graph_path: str | Path, options: G2oOptions = G2oOptions()) -> G
     """Load a graph and its optional ground truth and labels, inject outliers; no output yet."""
     graph_path = Path(graph_path)
     graph = load_g2o(graph_path)
+    _warn_about(graph)
     hints = dataset_hints(graph_path)
     n = graph.num_poses
     gt_path = options.ground_truth or (hints.ground_truth if options.auto_siblings else None)
@@ -614,6 +697,7 @@ def record_g2o(
         nominal_rate_hz=options.rate_hz,
         config=rec.config,
         odometry_information=rec.graph.odometry_information_matrix(),
+        warnings=rec.graph.warnings(),
     )
     return write_log(
         out_path, header, frames, candidates=rec.candidates, true_loops=rec.true_loops or (),

@@ -25,10 +25,11 @@ from typing import Literal
 
 import numpy as np
 
-from lcv_replay.errors import ConfigError, require
+from lcv_replay.errors import ConfigError, require, require_seed
 from lcv_replay.fileio import check_output_path
 from lcv_replay.records import Pose2D
 from lcv_replay.se2 import compose_chain, relative_steps
+from lcv_replay.shutdown import raise_if_stopped, stop_requested
 from recorders.common import ProgressCallback, RecordStats
 from recorders.synthetic_textures import render_facade
 from recorders.synthetic_world import RouteConfig, SyntheticWorld, WorldConfig, make_route, t_body_camera
@@ -149,7 +150,7 @@ class SyntheticOptions:
 
     def __post_init__(self) -> None:
         require(1 <= self.frames <= 1_000_000, "frames", self.frames, "1 .. 1000000 frames")
-        require(self.seed >= 0, "seed", self.seed, "a seed >= 0")
+        require_seed(self.seed, "record synthetic --seed")
         require(16 <= self.width_px <= 4096 and 16 <= self.height_px <= 4096, "resolution", f"{self.width_px}x{self.height_px}", "16..4096 pixels per side, e.g. 640x480")
         require(self.odometry in ("simulated", "vo"), "odometry", self.odometry, "'simulated' or 'vo'")
         require(self.image_format in ("png", "jpeg", "raw"), "image_format", self.image_format, "png, jpeg or raw")
@@ -222,7 +223,12 @@ def record_synthetic(
             writer.write_calibration(calibration, int(stamps[0]))
             if live:
                 writer.declare_ground_truth()
+            written = 0
             for i in range(n):
+                if stop_requested():  # Ctrl-C / SIGTERM: a valid log of the frames so far
+                    if i == 0:
+                        raise_if_stopped()
+                    break
                 for k in range(i, min(n, i + prefetch)):
                     if k not in pending:
                         pending[k] = pool.submit(world.render_stereo, Pose2D(*truth[k]), width_px=options.width_px, height_px=options.height_px)
@@ -230,13 +236,14 @@ def record_synthetic(
                 odom = Pose2D(*odometry[i]) if tracker is None else tracker.process(left, right).T_odom_base
                 writer.write_frame(i, int(stamps[i]), left=left, right=right, odom=odom, ground_truth=Pose2D(*truth[i]))
                 writer.flush()  # live: frame i is readable now (a no-op otherwise)
+                written = i + 1
                 if progress is not None:
                     progress(i + 1, n)
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
     return RecordStats(
         path=out_path,
-        frames=n,
+        frames=written,
         candidates=0,
         true_loops=0,
         size_bytes=out_path.stat().st_size,
@@ -244,6 +251,7 @@ def record_synthetic(
         has_images=True,
         has_odometry=True,
         has_ground_truth=True,
+        frames_planned=n if written < n else None,
     )
 
 

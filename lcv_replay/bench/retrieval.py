@@ -2,7 +2,8 @@
 
 ``lcv-replay bench retrieval IMAGES_DIR --truth-matrix FILE`` runs the whole front end (descriptor,
 PCA, binary codes, Hamming prefilter, L2 re-rank) with the PCA/ITQ fit on the whole set, then
-scores each backend:
+scores each backend in each retrieval mode (``--mode paper --mode ranked``; each mode describes
+with the engine it selects):
 
 * a **query** is a frame ``q`` with at least one true match ``m`` (truth matrix, either triangle)
   with ``q - m > Δt``; frames without one are not queries for recall;
@@ -10,7 +11,7 @@ scores each backend:
   is a true match;
 * **candidate precision**: true candidates / all candidates emitted (every frame's list);
 * ``exhaustive_recall_at_*``: the same recall from a plain L2 nearest-neighbour search over every
-  eligible frame, without the Hamming prefilter (what the prefilter costs);
+  eligible frame, without the Hamming prefilter (what the prefilter costs: the ceiling);
 * **speed**: ``descriptor_warmup_s`` (build + first call) and ``descriptor_frames_per_s``, the
   median over several timed passes, after warm-up, of ``describe()`` on decoded images (resize,
   normalisation, network, pooling).
@@ -55,6 +56,8 @@ class BackendReport:
     """One backend's row of the benchmark (the JSON object written per backend)."""
 
     backend: str
+    mode: str
+    engine: str
     dim: int
     queries: int
     recall_at_1: float
@@ -177,17 +180,29 @@ def score_candidates(
     )
 
 
-def exhaustive_candidates(descriptors: np.ndarray, *, exclusion_frames: int, top_k: int) -> dict[int, list[int]]:
-    """Plain L2 top-``top_k`` over every eligible earlier frame (no prefilter): the reference."""
+def exhaustive_candidates(
+    descriptors: np.ndarray, *, exclusion_frames: int, top_k: int, frames: np.ndarray | None = None, chunk_rows: int = 1024
+) -> dict[int, list[int]]:
+    """Plain L2 top-``top_k`` over every eligible earlier frame (no prefilter): the reference.
+
+    Args:
+        descriptors: ``(N, D)`` in frame order.
+        frames: ``(N,)`` increasing frame indices of the rows (default ``0..N-1``); a frame ``m`` is
+            eligible for query ``q`` when ``q - m > exclusion_frames``.
+        chunk_rows: queries per distance block (memory ``chunk_rows x N``).
+    """
     x = np.asarray(descriptors, dtype=np.float32)
+    frames = np.arange(x.shape[0]) if frames is None else np.asarray(frames, dtype=np.int64)
     sq = np.einsum("ij,ij->i", x, x)
-    d2 = sq[:, None] + sq[None, :] - 2.0 * x @ x.T
     out = {}
-    for q in range(x.shape[0]):
-        eligible = np.arange(0, max(0, q - exclusion_frames))
-        if eligible.size:
-            order = np.lexsort((eligible, d2[q, eligible]))[:top_k]
-            out[q] = eligible[order].tolist()
+    for start in range(0, x.shape[0], chunk_rows):
+        block = slice(start, min(start + chunk_rows, x.shape[0]))
+        d2 = sq[block, None] + sq[None, :] - 2.0 * x[block] @ x.T
+        for row, q in enumerate(range(block.start, block.stop)):
+            eligible = np.arange(0, int(np.searchsorted(frames, frames[q] - exclusion_frames, side="left")))
+            if eligible.size:
+                order = np.lexsort((eligible, d2[row, eligible]))[:top_k]
+                out[int(frames[q])] = frames[eligible[order]].tolist()
     return out
 
 
@@ -245,6 +260,8 @@ def bench_backend(
     exk = score_candidates(exhaustive, truth, exclusion_frames=config.exclusion_frames, top_k=config.top_k)
     return BackendReport(
         backend=name,
+        mode=config.mode,
+        engine=getattr(backend, "engine", "numpy"),
         dim=int(descriptors.shape[1]),
         queries=scores.queries,
         recall_at_1=scores.recall_at_1,
@@ -286,11 +303,16 @@ class LogReport:
     """Retrieval over a log, scored against ground-truth distances (the synthetic world report).
 
     ``revisits_found`` = recall@N_r (queries with a true candidate among their list), and
-    ``false_candidate_fraction`` = 1 - candidate precision.
+    ``false_candidate_fraction`` = 1 - candidate precision. ``exhaustive_revisits_found`` is the
+    same share from the plain L2 top ``N_r`` over every eligible frame (the ceiling of the
+    descriptor). ``same_heading_*``: the queries with a true match seen from a similar heading
+    (within 45 degrees), the revisits a forward camera can recognise at all.
     """
 
     log: str
     backend: str
+    mode: str
+    engine: str
     frames: int
     described: int
     cached: int
@@ -307,6 +329,10 @@ class LogReport:
     mean_prefilter_size: float
     describe_s: float
     retrieval_ms_per_frame: float
+    exhaustive_revisits_found: float
+    same_heading_queries: int
+    same_heading_found: float
+    exhaustive_same_heading_found: float
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -354,11 +380,22 @@ def bench_log(path: Path, backend_name: str, config: RetrievalConfig, *, radius_
     message = retriever.warmup_message()
     if message:
         log.warning("%s", message)
-    truth = truth_from_poses(np.asarray(gt)[:, :2], radius_m)
+    gt = np.asarray(gt)
+    truth = truth_from_poses(gt[:, :2], radius_m)
     scores = score_candidates(candidates, truth, exclusion_frames=config.exclusion_frames, top_k=config.top_k)
+    exhaustive = exhaustive_candidates(descriptors, exclusion_frames=config.exclusion_frames, top_k=config.top_k, frames=frames)
+    if config.fit == "online":  # the same queries as the retriever's: none during its warm-up
+        first = frames[min(retriever.warmup_frames, len(frames)) - 1] if len(frames) else 0
+        exhaustive = {q: v for q, v in exhaustive.items() if q > first}
+    ceiling = score_candidates(exhaustive, truth, exclusion_frames=config.exclusion_frames, top_k=config.top_k)
+    heading = same_heading_truth(gt, truth)
+    same = score_candidates(candidates, heading, exclusion_frames=config.exclusion_frames, top_k=config.top_k)
+    same_ceiling = score_candidates(exhaustive, heading, exclusion_frames=config.exclusion_frames, top_k=config.top_k)
     return LogReport(
         log=str(path),
         backend=backend_name,
+        mode=config.mode,
+        engine=getattr(backend, "engine", "numpy"),
         frames=int(truth.shape[0]),
         described=stats.described,
         cached=stats.cached,
@@ -375,60 +412,192 @@ def bench_log(path: Path, backend_name: str, config: RetrievalConfig, *, radius_
         mean_prefilter_size=float(np.mean(prefilter)) if prefilter else 0.0,
         describe_s=describe_s,
         retrieval_ms_per_frame=1000.0 * retrieval_s / len(frames),
+        exhaustive_revisits_found=ceiling.recall_at_k,
+        same_heading_queries=same.queries,
+        same_heading_found=same.recall_at_k,
+        exhaustive_same_heading_found=same_ceiling.recall_at_k,
     )
+
+
+def same_heading_truth(poses: np.ndarray, truth: np.ndarray, *, max_heading_rad: float = np.pi / 4) -> np.ndarray:
+    """``truth`` restricted to pairs whose ground-truth headings differ by at most ``max_heading_rad``.
+
+    Args:
+        poses: ``(N, 3)`` ground truth ``x, y, yaw`` (yaw in radians; NaN rows match nothing).
+        truth: ``(N, N)`` bool same-place matrix.
+    """
+    yaw = np.asarray(poses, dtype=np.float64)[:, 2]
+    diff = np.abs((yaw[:, None] - yaw[None, :] + np.pi) % (2.0 * np.pi) - np.pi)
+    return truth & (np.nan_to_num(diff, nan=np.inf) <= max_heading_rad)
 
 
 # --- index query cost vs library size ---------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class IndexVariant:
+    """One row kind of :func:`index_query_times`: a mode with its first-stage engine.
+
+    ``product`` variants are what ``retrieval.mode`` / ``ranked.index`` / ``index_strategy`` select;
+    the others are faiss's approximate indexes, measured as the first stage of the ranked mode
+    (same codes, same ``M``, same re-rank) to decide whether they win.
+    """
+
+    name: str
+    mode: str
+    engine: str
+    product: bool = True
+
+
+INDEX_VARIANTS: dict[str, IndexVariant] = {
+    v.name: v
+    for v in (
+        IndexVariant("paper/scan", "paper", "scan"),
+        IndexVariant("paper/table", "paper", "table"),
+        IndexVariant("ranked/faiss", "ranked", "faiss"),
+        IndexVariant("ranked/numpy", "ranked", "numpy"),
+        IndexVariant("ranked/faiss-hnsw", "ranked", "faiss-hnsw", product=False),
+        IndexVariant("ranked/faiss-mih", "ranked", "faiss-mih", product=False),
+    )
+}
+_INDEX_BLOCK = 25  # queries a variant runs back to back (as a replay's queries hit one index) before the next takes its turn
+DEFAULT_INDEX_VARIANTS = ("paper/scan", "paper/table", "ranked/faiss", "ranked/numpy", "ranked/faiss-hnsw", "ranked/faiss-mih")
+
+
 def index_query_times(
     sizes: Sequence[int] = (1_000, 10_000, 100_000),
     *,
-    strategies: Sequence[str] = ("scan", "table"),
-    vector_dim: int = 128,
-    code_bits: int = 20,
-    hamming_threshold: int = 3,
-    top_k: int = 10,
+    variants: Sequence[str] = DEFAULT_INDEX_VARIANTS,
+    vector_dim: int = 1904,
+    config: RetrievalConfig | None = None,
     queries: int = 500,
     seed: int = 0,
 ) -> list[dict]:
-    """Median time of one query (prefilter + re-rank) and one add, at each library size.
+    """Median time of one query (first stage + L2 re-rank) and one add, at each library size.
 
-    Synthetic library: uniformly random ``code_bits`` codes (the ITQ target: balanced, uncorrelated
-    bits) and Gaussian vectors, frames ``0..size-1``; queries are random codes with every frame
-    eligible, so the prefilter returns ``~size * P / 2^N_b`` frames (``P`` probes) as it would for
-    well-spread real codes.
+    Synthetic library: uniformly random codes (the ITQ target: balanced, uncorrelated bits; for the
+    approximate faiss indexes the hardest case) and Gaussian vectors, frames ``0..size-1``; queries
+    are random codes with every frame eligible, so the paper's prefilter returns
+    ``~size * P / 2^N_b`` frames (``P`` probes) as it would for well-spread real codes. Every size
+    measures every variant on the same library; the variants take turns, 25 queries each, so
+    background load hits them alike while each runs its queries back to back, as a replay does. ``first_stage_us_median`` is the prefilter alone; ``query_us_median`` adds the
+    re-rank. ``recall_vs_exact`` is the share of the exact Hamming top ``M`` that an approximate
+    first stage returns (1 for the exact ones; the paper's ball is not a top-M and gets ``None``).
     """
-    from lcv_replay.retrieval.index import CodeIndex
+    from lcv_replay.retrieval.index import CodeIndex, RankedIndex, code_words, faiss_available, hamming_nearest, rerank_l2_order
 
+    config = config or RetrievalConfig()
+    ranked_bits, paper_bits, m = config.ranked.code_bits, config.code_bits, config.ranked.candidates
     rng = np.random.default_rng(seed)
     rows = []
     for size in sizes:
-        codes = rng.integers(0, 1 << code_bits, size=size)
         vectors = rng.normal(size=(size, vector_dim)).astype(np.float32)
-        q_codes = rng.integers(0, 1 << code_bits, size=queries)
+        frames = np.arange(size, dtype=np.int64)
         q_vectors = rng.normal(size=(queries, vector_dim)).astype(np.float32)
-        for strategy in strategies:
-            index = CodeIndex(code_bits=code_bits, vector_dim=vector_dim, hamming_threshold=hamming_threshold, strategy=strategy)
+        codes = {"paper": rng.integers(0, 1 << paper_bits, size=size), "ranked": [int.from_bytes(rng.bytes(ranked_bits // 8), "little") for _ in range(size)]}
+        q_codes = {"paper": rng.integers(0, 1 << paper_bits, size=queries), "ranked": [int.from_bytes(rng.bytes(ranked_bits // 8), "little") for _ in range(queries)]}
+        ranked_words = np.stack([code_words(c, -(-ranked_bits // 64)) for c in codes["ranked"]])
+        searchers: dict[str, tuple] = {}
+        add_us: dict[str, float] = {}
+        for name in variants:
+            variant = INDEX_VARIANTS[name]
+            if variant.engine.startswith("faiss") and not faiss_available():
+                log.warning("%s skipped: faiss is not installed", name)
+                continue
             start = time.perf_counter()
-            for f in range(size):
-                index.add(f, int(codes[f]), vectors[f])
-            add_us = 1e6 * (time.perf_counter() - start) / size
-            times, hits = [], []
-            for c, v in zip(q_codes, q_vectors):
-                t0 = time.perf_counter()
-                result = index.search(int(c), v, max_frame_index=size, top_k=top_k)
-                times.append(time.perf_counter() - t0)
-                hits.append(result.prefilter_size)
+            if variant.mode == "paper":
+                index = CodeIndex(code_bits=paper_bits, vector_dim=vector_dim, hamming_threshold=config.hamming_threshold, strategy=variant.engine)
+            elif variant.product:
+                index = RankedIndex(code_bits=ranked_bits, vector_dim=vector_dim, candidates=m, engine=variant.engine)
+            else:
+                index = _ApproximateFirstStage(variant.engine, ranked_bits, vectors, frames)
+            if variant.product:
+                for f in range(size):
+                    index.add(f, int(codes[variant.mode][f]), vectors[f])
+            else:
+                index.add_all(codes["ranked"])
+            add_us[name] = 1e6 * (time.perf_counter() - start) / size
+            searchers[name] = (variant, index)
+        times = {name: [] for name in searchers}
+        first = {name: [] for name in searchers}
+        hits = {name: [] for name in searchers}
+        recall = {name: [] for name in searchers}
+        for block in range(0, queries, _INDEX_BLOCK):  # variants take turns, a block of queries each
+            for name, (variant, index) in searchers.items():
+                got_block = []
+                for qi in range(block, min(block + _INDEX_BLOCK, queries)):
+                    code, vector = int(q_codes[variant.mode][qi]), q_vectors[qi]
+                    t0 = time.perf_counter()
+                    if variant.product:
+                        result = index.search(code, vector, max_frame_index=size, top_k=config.top_k)
+                        size_passed = result.prefilter_size
+                    else:
+                        prefiltered = index.search(code, m)
+                        rerank_l2_order(vectors, prefiltered, frames, vector, config.top_k)
+                        size_passed = prefiltered.size
+                    times[name].append(time.perf_counter() - t0)
+                    t0 = time.perf_counter()
+                    got = index.prefilter(code, max_frame_index=size)[0] if variant.product else index.search(code, m)
+                    first[name].append(time.perf_counter() - t0)
+                    hits[name].append(size_passed)
+                    got_block.append((code, got))
+                if variant.mode == "ranked":  # measured (untimed) for the exact engines too: they must give 1
+                    for code, got in got_block:
+                        exact = hamming_nearest(ranked_words, code_words(code, ranked_words.shape[1]), m)[0]
+                        recall[name].append(len(np.intersect1d(got, exact)) / max(1, exact.size))
+        for name, (variant, _) in searchers.items():
             rows.append(
                 {
                     "library_frames": size,
-                    "strategy": strategy,
+                    "variant": name,
+                    "mode": variant.mode,
+                    "engine": variant.engine,
+                    "product": variant.product,
+                    "code_bits": paper_bits if variant.mode == "paper" else ranked_bits,
                     "vector_dim": vector_dim,
-                    "query_us_median": 1e6 * statistics.median(times),
-                    "query_us_p90": 1e6 * float(np.percentile(times, 90)),
-                    "add_us_mean": add_us,
-                    "mean_prefilter_size": float(np.mean(hits)),
+                    "query_us_median": 1e6 * statistics.median(times[name]),
+                    "query_us_p90": 1e6 * float(np.percentile(times[name], 90)),
+                    "first_stage_us_median": 1e6 * statistics.median(first[name]),
+                    "add_us_mean": add_us[name],
+                    "mean_prefilter_size": float(np.mean(hits[name])),
+                    "recall_vs_exact": float(np.mean(recall[name])) if recall[name] else None,
                 }
             )
+        del searchers
+    for row in rows:  # growth against the smallest size, per variant
+        base = next(r for r in rows if r["variant"] == row["variant"])
+        row["query_vs_smallest"] = row["query_us_median"] / base["query_us_median"]
     return rows
+
+
+class _ApproximateFirstStage:
+    """faiss's approximate binary indexes as the ranked first stage (measured, not shipped).
+
+    * ``faiss-hnsw``: ``IndexBinaryHNSW`` (32 links per node, efSearch 2 M);
+    * ``faiss-mih``: ``IndexBinaryMultiHash`` (multi-index hashing: ``bits / 16`` tables of 16-bit
+      substrings, probing every substring within 1 flip).
+    """
+
+    def __init__(self, engine: str, code_bits: int, vectors: np.ndarray, frames: np.ndarray):
+        import faiss
+
+        faiss.omp_set_num_threads(1)
+        self._bytes = code_bits // 8
+        if engine == "faiss-hnsw":
+            self._index = faiss.IndexBinaryHNSW(code_bits, 32)
+            self._index.hnsw.efSearch = 200
+        elif engine == "faiss-mih":
+            self._index = faiss.IndexBinaryMultiHash(code_bits, code_bits // 16, 16)
+            self._index.nflip = 1
+        else:
+            raise RetrievalError(f"unknown approximate engine '{engine}'")
+
+    def _pack(self, codes) -> np.ndarray:
+        return np.frombuffer(b"".join(int(c).to_bytes(self._bytes, "little") for c in codes), dtype=np.uint8).reshape(-1, self._bytes)
+
+    def add_all(self, codes) -> None:
+        self._index.add(self._pack(codes))
+
+    def search(self, code: int, count: int) -> np.ndarray:
+        _, labels = self._index.search(self._pack([code]), count)
+        return labels[0][labels[0] >= 0].astype(np.int64)

@@ -74,7 +74,7 @@ from pathlib import Path
 from typing import Any, Iterable, Literal, Sequence
 
 from lcv_replay.bench.worlds import LAYOUTS, NOISE_MODELS, WorldSpec
-from lcv_replay.errors import ConfigError
+from lcv_replay.errors import ConfigError, require_seed
 
 LoopMeasurements = Literal["as-recorded", "same-place"]
 
@@ -329,6 +329,13 @@ def _typed(value: Any, kind: type | tuple[type, ...], key: str, path: Path) -> A
     return value
 
 
+def _seed(value: Any, key: str, path: Path) -> int:
+    try:
+        return require_seed(value, f"suite key '{key}'")
+    except ConfigError as exc:
+        raise ConfigError(exc.message, path=path, fix=exc.fix) from None
+
+
 def _list_of(table: dict, key: str, kind: type, path: Path, default: Iterable) -> tuple:
     if key not in table:
         return tuple(default)
@@ -384,7 +391,7 @@ def load_suite_file(path: str | Path, *, _seen: tuple[Path, ...] = ()) -> Suite:
                 _list_of(table, "outliers", int, path, VERTIGO_OUTLIERS),
                 _list_of(table, "modes", str, path, VERTIGO_MODES),
                 group_size=_typed(table.get("group_size", 10), int, "vertigo.group_size", path),
-                seed=_typed(table.get("seed", 0), int, "vertigo.seed", path),
+                seed=_seed(table.get("seed", 0), "vertigo.seed", path),
             )
         )
     for table in _typed(data.get("world", []), list, "world", path):
@@ -396,7 +403,7 @@ def load_suite_file(path: str | Path, *, _seen: tuple[Path, ...] = ()) -> Suite:
                 _list_of(table, "noise", str, path, NOISE_MODELS),
                 _list_of(table, "modes", str, path, VERTIGO_MODES),
                 _list_of(table, "outliers", int, path, (500,)),
-                _list_of(table, "seeds", int, path, (0,)),
+                tuple(_seed(v, "world.seeds", path) for v in _list_of(table, "seeds", int, path, (0,))),
                 group_size=_typed(table.get("group_size", 10), int, "world.group_size", path),
             )
         )
@@ -414,7 +421,7 @@ def load_suite_file(path: str | Path, *, _seen: tuple[Path, ...] = ()) -> Suite:
                 outliers=_typed(table.get("outliers", 0), int, "case.outliers", path),
                 outlier_mode=_typed(table.get("outlier_mode", "random"), str, "case.outlier_mode", path),
                 group_size=_typed(table.get("group_size", 10), int, "case.group_size", path),
-                seed=_typed(table.get("seed", 0), int, "case.seed", path),
+                seed=_seed(table.get("seed", 0), "case.seed", path),
                 loop_measurements=_measurements(table.get("loop_measurements", "as-recorded"), path),
             )
         )

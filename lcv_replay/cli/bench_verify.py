@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from lcv_replay.cli.app import app, bench_app, record_app  # noqa: F401
+from lcv_replay.cli.app import bench_app, check_outputs, config_option, force_option
 
 _METHOD_HELP = "Verification method (repeatable): ilv, ilv+, none, ir-only, dcs, gm, cauchy, gnc, oracle, ..."
 
@@ -23,12 +23,11 @@ def _num(value) -> str:
     return "–" if value is None else f"{value:.3f}"
 
 
-def _check_json_output(path: Optional[Path]) -> None:
-    """Fail before any work if ``--json OUT`` cannot be written (it is overwritten if it exists)."""
-    if path is not None:
-        from lcv_replay.fileio import check_output_path
+def _check_seed(seed: Optional[int]) -> None:
+    if seed is not None:
+        from lcv_replay.errors import require_seed
 
-        check_output_path(path, force=True)
+        require_seed(seed, "--seed")
 
 
 @bench_app.command(
@@ -41,9 +40,10 @@ def _check_json_output(path: Optional[Path]) -> None:
 def bench_verify_command(
     logs: list[Path] = typer.Argument(..., help="lcv-replay MCAP logs with /loop_candidates (e.g. from 'record g2o')."),
     method: list[str] = typer.Option(["ilv+"], "--method", "-m", help=_METHOD_HELP),
-    config: Optional[Path] = typer.Option(None, "--config", help="TOML config; its [verification] section is used."),
+    config: Optional[Path] = config_option("its [verification] section is used"),
     seed: Optional[int] = typer.Option(None, "--seed", help="Override verification.seed."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the rows as a JSON list (atomically)."),
+    force: bool = force_option("the JSON file"),
 ) -> None:
     from lcv_replay.bench.suite import CaseRow, markdown_rows
     from lcv_replay.bench.verify import load_inputs, verify_inputs
@@ -51,9 +51,10 @@ def bench_verify_command(
     from lcv_replay.verification.registry import make_verifier
 
     verification = _load_verification_config(config)
+    _check_seed(seed)
     for name in method:  # unknown methods fail before any log is read
         make_verifier(name, verification)
-    _check_json_output(json_out)
+    check_outputs(json_out, force=force)
     rows = []
     for path in logs:
         inputs = load_inputs(path)
@@ -78,7 +79,7 @@ def bench_suite_command(
     seeds: Optional[int] = typer.Option(None, "--seeds", min=1, help="Redraw every seeded case (outliers injected, generated worlds) with N new seeds, one case each."),
     first_seed: Optional[int] = typer.Option(None, "--first-seed", min=0, help="With --seeds: use seeds S..S+N-1 (default: drawn at random, printed, so the run can be repeated)."),
     method: list[str] = typer.Option([], "--method", "-m", help=_METHOD_HELP + " Default: the suite's, else none, ir-only, dcs, gm, cauchy, gnc, oracle, ilv, ilv+."),
-    config: Optional[Path] = typer.Option(None, "--config", help="TOML config; its [verification] section is used."),
+    config: Optional[Path] = config_option("its [verification] section is used"),
     seed: Optional[int] = typer.Option(None, "--seed", help="Override verification.seed."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the report (rows, summary, config) as JSON."),
     workdir: Optional[Path] = typer.Option(None, "--workdir", help="Where the suite's logs are built and reused (default ~/.cache/lcv-replay/suite)."),
@@ -86,6 +87,7 @@ def bench_suite_command(
     rows_table: bool = typer.Option(True, "--rows/--no-rows", help="Print the per-case table, not only the per-method summary."),
     address: Optional[str] = typer.Option(None, "--address", help="Run the (case, method) pairs on this Ray cluster (auto, HOST:PORT, ray://HOST:PORT); see 'lcv-replay batch --help'."),
     workers: Optional[int] = typer.Option(None, "--workers", "-j", help="Run the (case, method) pairs as Ray tasks, this many at a time (an embedded local cluster unless --address); default: serial, in this process."),
+    force: bool = force_option("the JSON report"),
 ) -> None:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -118,9 +120,10 @@ def bench_suite_command(
         chosen = with_seeds(chosen, range(first_seed, first_seed + seeds))
         typer.echo(f"seeds {first_seed}..{first_seed + seeds - 1} (repeat with --seeds {seeds} --first-seed {first_seed})", err=True)
     verification = _load_verification_config(config)
+    _check_seed(seed)
     data_dir = resolve_data_dir(data)
     workdir = workdir or default_workdir()
-    _check_json_output(json_out)
+    check_outputs(json_out, force=force)
     methods = available_suite_methods(method or chosen.methods)
 
     done_rows = []
@@ -167,7 +170,7 @@ def bench_suite_command(
                 chosen, data_dir=data_dir, workdir=workdir, config=verification, methods=methods,
                 seed=seed, progress=on_event, on_row=on_row, distribute=None if connected is None else on_cluster(connected),
             )
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as interrupt:  # Ctrl-C or SIGTERM (lcv_replay.shutdown.Interrupted)
         from lcv_replay.config import to_dict
 
         partial = SuiteReport(
@@ -176,7 +179,7 @@ def bench_suite_command(
         )
         write_report(partial)
         typer.echo(f"interrupted after {len(done_rows)} runs" + (f"; partial report in {json_out}" if json_out else ""), err=True)
-        raise typer.Exit(130) from None
+        raise typer.Exit(getattr(interrupt, "exit_code", 130)) from None
 
     reused = sum(1 for b in report.builds if b.reused)
     typer.echo(f"suite {report.suite}: {len(chosen.cases)} cases x {len(methods)} methods in {report.wall_time_s:.1f} s "

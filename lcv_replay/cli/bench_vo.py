@@ -14,7 +14,7 @@ from typing import Any, Iterator, Optional
 
 import typer
 
-from lcv_replay.cli.app import bench_app
+from lcv_replay.cli.app import bench_app, check_outputs, config_option, force_option
 
 DEFAULT_KITTI_FRAMES = Path("../shared/data/kitti06_frames")
 
@@ -115,7 +115,7 @@ def _progress(quiet: bool) -> Iterator:
 def bench_vo_command(
     frames: int = typer.Option(1500, "--frames", min=20, help="Frames of the synthetic route for the drift table."),
     resolution: str = typer.Option("640x480", "--resolution", help="Image size WIDTHxHEIGHT for drift and speed."),
-    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the synthetic world and route."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the synthetic world and route."),
     noise: Optional[list[float]] = typer.Option(None, "--noise", help="Sensor noise (grey-level sigma) of a drift row; repeat (default: 0 and 2)."),
     speed_pairs: int = typer.Option(200, "--speed-pairs", min=10, help="Pre-rendered pairs for the speed measurement."),
     speed_runs: int = typer.Option(5, "--speed-runs", min=1, help="Timed runs over them (median reported)."),
@@ -123,21 +123,25 @@ def bench_vo_command(
     end_to_end: bool = typer.Option(False, "--end-to-end/--no-end-to-end", help="Also record the demo with simulated and VO odometry and replay both (minutes)."),
     e2e_frames: int = typer.Option(1500, "--e2e-frames", min=50, help="Frames of each end-to-end recording."),
     replay_config: Optional[Path] = typer.Option(None, "--replay-config", help="TOML config of the end-to-end replays (default: the paper defaults)."),
-    vo_config: Optional[Path] = typer.Option(None, "--config", help="TOML config; its [vo] table (keys of VoConfig) applies."),
-    workdir: Path = typer.Option(Path("bench-out"), "--workdir", help="Folder for the end-to-end logs."),
-    output: Path = typer.Option(Path("bench-out/vo_bench.json"), "-o", "--output", help="JSON results (overwritten)."),
+    vo_config: Optional[Path] = config_option("its [vo] table (keys of VoConfig) applies"),
+    workdir: Path = typer.Option(Path("bench-out"), "--workdir", help="Scratch folder for the end-to-end logs (scratch files, always overwritten)."),
+    output: Path = typer.Option(Path("bench-out/vo_bench.json"), "-o", "--output", help="JSON results."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
+    force: bool = force_option("the JSON results"),
 ) -> None:
     """Stereo VO: KITTI drift metric and ATE on the synthetic world, pairs/s, KITTI 06 12->13, end to end."""
     from lcv_replay.bench import vo as bench
     from lcv_replay.cli.record_synthetic import parse_resolution
     from lcv_replay.cli.vo import load_vo_config
     from lcv_replay.config import load_config, to_dict
-    from lcv_replay.fileio import check_output_path, write_text_atomic
+    from lcv_replay.errors import require_seed
+    from lcv_replay.fileio import write_text_atomic
 
+    require_seed(seed, "--seed")
     width_px, height_px = parse_resolution(resolution)
     config = load_vo_config(vo_config)
-    check_output_path(output, force=True)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    check_outputs(output, force=force)
     replay_cfg = load_config(replay_config) if end_to_end else None
     results: dict[str, Any] = {
         "machine": {"cpu_count": os.cpu_count(), "machine": platform.machine(), "python": platform.python_version()},

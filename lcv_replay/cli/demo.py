@@ -15,7 +15,7 @@ from typing import Optional
 
 import typer
 
-from lcv_replay.cli.app import app
+from lcv_replay.cli.app import app, check_outputs, force_option
 
 log = logging.getLogger(__name__)
 
@@ -23,6 +23,7 @@ DEMO_FRAMES = 1500  # three windows of W = 500 (paper sec. II-D); a few minutes 
 DEMO_WIDTH_PX = 320
 DEMO_HEIGHT_PX = 240
 DEMO_SEED = 0
+DEFAULT_DEMO_RRD = Path("demo.rrd")
 DEMO_JPEG_QUALITY = 90  # the cached log stays small (PNG stereo pairs would be ~0.5 GB)
 
 
@@ -64,7 +65,7 @@ def ensure_demo_log(frames: int, seed: int, width_px: int, height_px: int, *, re
 @app.command("demo", help="Record the synthetic stereo world (cached) and replay it with the defaults into demo.rrd.")
 def demo_command(
     frames: int = typer.Option(DEMO_FRAMES, "--frames", min=50, help="Frames of the synthetic drive."),
-    save: Path = typer.Option(Path("demo.rrd"), "--save", help="Rerun recording to write."),
+    save: Optional[Path] = typer.Option(None, "--save", help="Rerun recording to write (default: demo.rrd, replaced by each run)."),
     summary_json: Optional[Path] = typer.Option(None, "--summary-json", help="Also write the summary as JSON (docs/summary-json.md)."),
     export: Optional[Path] = typer.Option(None, "--export", metavar="DIR", help="Write trajectories (TUM, KITTI), loops.csv, accepted.g2o, config.toml and summary.json into DIR."),
     report: Optional[Path] = typer.Option(None, "--report", metavar="FILE.html", help="Write a self-contained HTML report of the run."),
@@ -73,16 +74,19 @@ def demo_command(
     seed: int = typer.Option(DEMO_SEED, "--seed", help="Seed of the world, the route and the replay."),
     rerecord: bool = typer.Option(False, "--rerecord", help="Record the synthetic world again even if it is cached."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
+    force: bool = force_option("the recording, the summary JSON, the report and the export folder's files"),
 ) -> None:
     from lcv_replay.cli.replay import build_sinks
     from lcv_replay.config import ReplayConfig
-    from lcv_replay.fileio import check_output_path
+    from lcv_replay.errors import require_seed
     from lcv_replay.replay import ReplayOptions, replay
+    from lcv_replay.shutdown import StopToken
     from lcv_replay.sinks.config import RerunOutputs
 
-    check_output_path(save, force=True)
-    if summary_json is not None:
-        check_output_path(summary_json, force=True)
+    require_seed(seed, "--seed")
+    check_outputs(summary_json, report, force=force, folder=export)
+    check_outputs(save or DEFAULT_DEMO_RRD, force=force or save is None)  # the default recording is replaced
+    save = save or DEFAULT_DEMO_RRD
     config = ReplayConfig()
     outputs = RerunOutputs(save=save, spawn=spawn)
     # Every output is checked before the (possibly long) recording of the world.
@@ -90,6 +94,7 @@ def demo_command(
     log_path = ensure_demo_log(frames, seed, DEMO_WIDTH_PX, DEMO_HEIGHT_PX, rerecord=rerecord, quiet=quiet)
     sinks = build_sinks(rerun_config=config.rerun, outputs=outputs, summary_json=summary_json, quiet=quiet,
                         export=export, report=report)
-    summary = replay(ReplayOptions(log_path=log_path, config=config, method=method, seed=seed), sinks)
+    stop = StopToken()
+    summary = replay(ReplayOptions(log_path=log_path, config=config, method=method, seed=seed), sinks, stop=stop)
     if summary.interrupted:
-        raise typer.Exit(130)
+        raise typer.Exit(stop.exit_code)

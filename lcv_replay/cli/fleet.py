@@ -8,7 +8,7 @@ from typing import Optional
 
 import typer
 
-from lcv_replay.cli.app import app, bench_app
+from lcv_replay.cli.app import app, bench_app, check_outputs, force_option
 from lcv_replay.cli.replay import ConstraintChoice
 
 _ADDRESS_HELP = (
@@ -205,13 +205,12 @@ def compare_command(
     ate_tol: float = typer.Option(0.05, "--ate-tol", help="ATE may grow by this fraction (or by --ate-tol-m, whichever is larger)."),
     ate_tol_m: float = typer.Option(0.01, "--ate-tol-m", help="ATE may grow by this many metres (or by --ate-tol, whichever is larger)."),
     time_tol: Optional[float] = typer.Option(None, "--time-tol", help="Also gate on replay time: slower by more than this fraction is a regression (default: report time only)."),
+    force: bool = force_option("compare.md and compare.html"),
 ) -> None:
-    from lcv_replay.fileio import check_output_path
     from lcv_replay.fleet.compare import CHANGE_HEADER, COMPARE_HTML, COMPARE_MD, Tolerances, change_cells, compare, headline, load_figures, write_compare
 
     tolerances = Tolerances(recall_tol=recall_tol, ate_tol=ate_tol, ate_tol_m=ate_tol_m, time_tol=time_tol)
-    for name in (COMPARE_MD, COMPARE_HTML):
-        check_output_path(out / name, force=True)
+    check_outputs(out / COMPARE_MD, out / COMPARE_HTML, force=force)
     result = compare(load_figures(run_a), load_figures(run_b), tolerances)
     typer.echo(headline(result))
     for warning in result.warnings:
@@ -249,18 +248,18 @@ def bench_fleet_command(
     storage_gb_s: float = typer.Option(1.0, "--storage-gb-s", help="Assumed aggregate bandwidth of the shared storage in the simulation."),
     method: Optional[str] = typer.Option(None, "--method", "-m", help="Verifier (default: the config's)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write every measurement as JSON."),
+    force: bool = force_option("the JSON file"),
 ) -> None:
     import json
     import shutil
     import tempfile
 
     from lcv_replay.bench.suite import default_workdir, resolve_data_dir
-    from lcv_replay.fileio import check_output_path, write_text_atomic
+    from lcv_replay.fileio import write_text_atomic
     from lcv_replay.fleet import bench
     from lcv_replay.replay import ReplayOptions
 
-    if json_out is not None:
-        check_output_path(json_out, force=True)
+    check_outputs(json_out, force=force)
     data_dir = resolve_data_dir(data)
     base = out or Path(tempfile.mkdtemp(prefix="lcv-bench-fleet-"))
     try:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import typer
 
-from lcv_replay.cli.app import app, bench_app
+from lcv_replay.cli.app import app, bench_app, check_outputs, force_option
 
 
 @app.command("info", help="Show a log's topics, counts, rates, frames and contents (like 'ros2 bag info'); also ROS 1/ROS 2 bags and any MCAP.")
@@ -69,14 +69,15 @@ def info_command(
 
 @bench_app.command("log", help="Log I/O benchmark: write/read throughput and size of 640x480 RGB stereo logs.")
 def bench_log_command(
-    frames: int = typer.Option(300, help="Frames per run."),
-    resolution: str = typer.Option("640x480", help="WxH of each image."),
-    source: list[str] = typer.Option(["corridor", "synthetic"], help="corridor (real RTAB-Map images) and/or synthetic."),
+    frames: int = typer.Option(300, "--frames", help="Frames per run."),
+    resolution: str = typer.Option("640x480", "--resolution", help="WxH of each image."),
+    source: list[str] = typer.Option(["corridor", "synthetic"], "--source", help="corridor (real RTAB-Map images) and/or synthetic; repeat for both."),
     image_format: str = typer.Option("png", "--image-format", help="png, jpeg or raw."),
-    compression: str = typer.Option("zstd", help="zstd, lz4 or none."),
-    repeats: int = typer.Option(3, help="Runs per source; medians are reported."),
-    corridor: Path = typer.Option(None, help="Folder of the corridor JPEGs (default $LCV_SHARED_DATA/rtabmap_corridor)."),
+    compression: str = typer.Option("zstd", "--compression", help="zstd, lz4 or none."),
+    repeats: int = typer.Option(3, "--repeats", help="Runs per source; medians are reported."),
+    corridor: Path = typer.Option(None, "--corridor", help="Folder of the corridor JPEGs (default $LCV_SHARED_DATA/rtabmap_corridor)."),
     output: Path = typer.Option(Path("bench-out/log_bench.json"), "-o", "--output", help="JSON results."),
+    force: bool = force_option("the JSON results"),
 ) -> None:
     import json
 
@@ -88,6 +89,8 @@ def bench_log_command(
         width, height = (int(v) for v in resolution.lower().split("x"))
     except ValueError:
         raise ConfigError(f"resolution {resolution!r} is not WxH", fix="e.g. --resolution 640x480") from None
+    output.parent.mkdir(parents=True, exist_ok=True)
+    check_outputs(output, force=force)
     if corridor is None:
         import os
 
@@ -101,6 +104,5 @@ def bench_log_command(
         for s in source
     ]
     typer.echo(format_results(results))
-    output.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(output, json.dumps(results_to_json(results), indent=2) + "\n")
     typer.echo(f"wrote {output}")

@@ -16,7 +16,7 @@ import enum
 
 import typer
 
-from lcv_replay.cli.app import app, bench_app, record_app  # noqa: F401
+from lcv_replay.cli.app import force_option, record_app
 
 log = logging.getLogger(__name__)
 
@@ -44,12 +44,15 @@ class LoopMeasurementsChoice(str, enum.Enum):
 
 
 OUT_OPTION = typer.Option(..., "--out", "-o", help="Output .mcap file (written atomically).")
-FORCE_OPTION = typer.Option(False, "--force", "-f", help="Overwrite OUT if it exists.")
+FORCE_OPTION = force_option("OUT")
 QUIET_OPTION = typer.Option(False, "--quiet", "-q", help="No progress bar and no summary line.")
 IMAGE_FORMAT_OPTION = typer.Option(ImageFormatChoice.png, "--image-format", help="png (lossless), jpeg or raw.")
 JPEG_QUALITY_OPTION = typer.Option(95, "--jpeg-quality", min=1, max=100, help="JPEG quality with --image-format jpeg.")
 START_FRAME_OPTION = typer.Option(0, "--start-frame", min=0, help="First source frame to record.")
 MAX_FRAMES_OPTION = typer.Option(None, "--max-frames", min=1, help="Record at most this many frames.")
+#: Ground truth, the same in every recorder: ``--ground-truth PATH`` gives it; ``--no-ground-truth``
+#: records none, even where the recorder finds one next to the data.
+NO_GROUND_TRUTH_OPTION = typer.Option(False, "--no-ground-truth", help="Record no ground truth, even where ROOT/poses/SS.txt exists.")
 LIVE_OPTION = typer.Option(
     False, "--live",
     help="Write OUT itself chunk by chunk (one flushed chunk per frame) so that 'lcv-replay OUT --follow' can watch it while it "
@@ -99,15 +102,34 @@ def recording_progress(description: str, *, quiet: bool) -> Iterator:
         yield update
 
 
+def run_recording(record, *, quiet: bool) -> None:
+    """Run ``record()`` (returns ``RecordStats``) where Ctrl-C or SIGTERM stops it after the current frame.
+
+    The log of the frames so far is closed and summarised, and the command exits ``128 + signal``
+    (130, 143); a second signal aborts at once and leaves no file (:mod:`lcv_replay.shutdown`).
+    """
+    from lcv_replay.shutdown import StopToken, stop_on_signals
+
+    stop = StopToken()
+    with stop_on_signals(stop, what="stopping after this frame and closing the log"):
+        stats = record()
+    if not quiet or stats.interrupted:
+        typer.echo(stats.summary())
+    if stats.interrupted:
+        raise typer.Exit(stop.exit_code)
+
+
 def _run_recorder(name: str, source, out: Path, options, *, force: bool, quiet: bool, live: bool = False) -> None:
     """Run the registered recorder ``name`` with a progress bar, then print its one-line summary."""
     from recorders import get_recorder
 
     record = get_recorder(name).load()
-    with recording_progress(name, quiet=quiet) as progress:
-        stats = record(source, out, options, force=force, progress=progress, live=live)
-    if not quiet:
-        typer.echo(stats.summary())
+
+    def run():
+        with recording_progress(name, quiet=quiet) as progress:
+            return record(source, out, options, force=force, progress=progress, live=live)
+
+    run_recording(run, quiet=quiet)
 
 
 @record_app.command("g2o")
@@ -160,7 +182,8 @@ def record_kitti_command(
     odometry: Optional[Path] = typer.Option(None, "--odometry", help="Odometry of the left camera: KITTI pose file or TUM file (stamps = times.txt)."),
     odometry_format: PoseFormatChoice = typer.Option(PoseFormatChoice.auto, "--odometry-format", help="auto (by column count), kitti or tum."),
     ground_truth: Optional[Path] = typer.Option(None, "--ground-truth", help="Ground-truth poses (default: ROOT/poses/SS.txt if present)."),
-    auto_ground_truth: bool = typer.Option(True, "--auto-ground-truth/--no-ground-truth", help="Use ROOT/poses/SS.txt when --ground-truth is not given."),
+    no_ground_truth: bool = NO_GROUND_TRUTH_OPTION,
+    _auto_ground_truth: bool = typer.Option(True, "--auto-ground-truth", hidden=True, help="Old spelling of the default."),
     color: bool = typer.Option(False, "--color", help="Record image_2/image_3 (P2/P3) instead of the grey pair."),
     start_frame: int = START_FRAME_OPTION,
     max_frames: Optional[int] = MAX_FRAMES_OPTION,
@@ -180,7 +203,7 @@ def record_kitti_command(
         odometry=odometry,
         odometry_format=odometry_format.value,  # type: ignore[arg-type]
         ground_truth=ground_truth,
-        auto_ground_truth=auto_ground_truth,
+        auto_ground_truth=not no_ground_truth,
         color=color,
         start_frame=start_frame,
         max_frames=max_frames,
@@ -200,7 +223,8 @@ def record_euroc_command(
     odometry: Optional[Path] = typer.Option(None, "--odometry", help="Left-camera odometry (TUM with stamps in seconds, or KITTI format, one line per frame)."),
     odometry_format: PoseFormatChoice = typer.Option(PoseFormatChoice.auto, "--odometry-format", help="auto, kitti or tum."),
     vo: bool = typer.Option(False, "--vo", help="Compute /odom with stereo visual odometry on the images (instead of --odometry)."),
-    ground_truth: bool = typer.Option(True, "--ground-truth/--no-ground-truth", help="Use mav0/state_groundtruth_estimate0 when present."),
+    no_ground_truth: bool = typer.Option(False, "--no-ground-truth", help="Record no ground truth, even where mav0/state_groundtruth_estimate0 exists."),
+    _ground_truth: bool = typer.Option(True, "--ground-truth", hidden=True, help="Old spelling of the default."),
     stereo_tolerance_ns: int = typer.Option(1_000_000, "--stereo-tolerance-ns", min=0, help="Left/right stamps closer than this form a pair."),
     start_frame: int = START_FRAME_OPTION,
     max_frames: Optional[int] = MAX_FRAMES_OPTION,
@@ -217,7 +241,7 @@ def record_euroc_command(
         rectify=rectify,
         odometry=odometry,
         odometry_format=odometry_format.value,  # type: ignore[arg-type]
-        ground_truth=ground_truth,
+        ground_truth=not no_ground_truth,
         stereo_tolerance_ns=stereo_tolerance_ns,
         start_frame=start_frame,
         vo=vo,

@@ -14,8 +14,8 @@ from typing import Iterator
 
 import typer
 
-from lcv_replay.cli.app import bench_app, record_app
-from lcv_replay.cli.record import ImageFormatChoice
+from lcv_replay.cli.app import bench_app, check_outputs, force_option, record_app
+from lcv_replay.cli.record import ImageFormatChoice, run_recording
 from lcv_replay.errors import ConfigError
 
 
@@ -68,7 +68,7 @@ def _progress_bar(quiet: bool) -> Iterator:
 def record_synthetic_command(
     out: Path = typer.Option(..., "--out", "-o", help="Output .mcap file (written atomically)."),
     frames: int = typer.Option(1500, "--frames", min=1, help="Frames to record (~0.8 m of route each at 10 Hz)."),
-    seed: int = typer.Option(0, "--seed", min=0, help="Seed of the world, its textures, the route and the odometry noise."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the world, its textures, the route and the odometry noise."),
     resolution: str = typer.Option("640x480", "--resolution", help="Image size WIDTHxHEIGHT, e.g. 640x480 or 320x240."),
     odometry: OdometryChoice = typer.Option(OdometryChoice.simulated, "--odometry", case_sensitive=False, help="simulated: true motion with drift; vo: stereo VO on the rendered images."),
     drift_translation_pct: float = typer.Option(1.0, "--drift-translation-pct", help="Per-step translation noise, % of the step length (standard deviation)."),
@@ -77,7 +77,7 @@ def record_synthetic_command(
     drift_yaw_bias_deg_per_m: float = typer.Option(0.008, "--drift-yaw-bias-deg-per-m", help="Systematic yaw drift, degrees per metre travelled."),
     image_format: ImageFormatChoice = typer.Option(ImageFormatChoice.png, "--image-format", case_sensitive=False, help="png (lossless), jpeg or raw."),
     jpeg_quality: int = typer.Option(95, "--jpeg-quality", min=1, max=100, help="JPEG quality with --image-format jpeg."),
-    force: bool = typer.Option(False, "--force", "-f", help="Overwrite OUT if it exists."),
+    force: bool = force_option("OUT"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and no summary line."),
     live: bool = typer.Option(False, "--live", help="Write OUT itself chunk by chunk (one flushed chunk per frame) so that 'lcv-replay OUT --follow' can watch it; gives up the atomic rename."),
 ) -> None:
@@ -104,10 +104,11 @@ def record_synthetic_command(
         image_format=image_format.value,  # type: ignore[arg-type]
         jpeg_quality=jpeg_quality,
     )
-    with _progress_bar(quiet) as progress:
-        stats = record_synthetic(out, options, force=force, progress=progress, live=live)
-    if not quiet:
-        typer.echo(stats.summary())
+    def run():
+        with _progress_bar(quiet) as progress:
+            return record_synthetic(out, options, force=force, progress=progress, live=live)
+
+    run_recording(run, quiet=quiet)
 
 
 @bench_app.command("synthetic", help="Recorder benchmark: frames/s, CPU per frame and MB per 1000 frames of 'record synthetic'.")
@@ -116,8 +117,9 @@ def bench_synthetic_command(
     resolution: list[str] = typer.Option(["640x480"], "--resolution", help="WIDTHxHEIGHT; repeat for several."),
     image_format: list[ImageFormatChoice] = typer.Option([ImageFormatChoice.png], "--image-format", case_sensitive=False, help="png, jpeg or raw; repeat for several."),
     odometry: OdometryChoice = typer.Option(OdometryChoice.simulated, "--odometry", case_sensitive=False, help="simulated or vo."),
-    workdir: Path = typer.Option(Path("bench-out"), "--workdir", help="Folder for the recorded log (overwritten)."),
+    workdir: Path = typer.Option(Path("bench-out"), "--workdir", help="Scratch folder for the recorded log (a scratch file, always overwritten)."),
     output: Path = typer.Option(Path("bench-out/synthetic_bench.json"), "-o", "--output", help="JSON results."),
+    force: bool = force_option("the JSON results"),
 ) -> None:
     import json
     from dataclasses import asdict
@@ -126,6 +128,8 @@ def bench_synthetic_command(
     from recorders.synthetic import SyntheticOptions, format_bench_results, run_synthetic_benchmark
 
     sizes = [parse_resolution(text) for text in resolution]
+    output.parent.mkdir(parents=True, exist_ok=True)
+    check_outputs(output, force=force)
     workdir.mkdir(parents=True, exist_ok=True)
     results = []
     for width_px, height_px in sizes:
@@ -133,6 +137,5 @@ def bench_synthetic_command(
             options = SyntheticOptions(frames=frames, width_px=width_px, height_px=height_px, image_format=fmt.value, odometry=odometry.value)  # type: ignore[arg-type]
             results.append(run_synthetic_benchmark(workdir, options))
             typer.echo(format_bench_results(results[-1:]).splitlines()[-1] if len(results) > 1 else format_bench_results(results))
-    output.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(output, json.dumps([asdict(r) for r in results], indent=2) + "\n")
     typer.echo(f"wrote {output}")

@@ -11,6 +11,7 @@ Field logs are replayed as they come (the field-log part of this command):
 from __future__ import annotations
 
 import enum
+import logging
 import os
 import sys
 from dataclasses import dataclass
@@ -19,7 +20,7 @@ from typing import Optional
 
 import typer
 
-from lcv_replay.cli.app import app
+from lcv_replay.cli.app import LcvCommand, app, check_outputs, config_option, force_option
 from lcv_replay.cli.record import (
     GROUND_TRUTH_FROM_TF_OPTION,
     GROUND_TRUTH_TOPIC_OPTION,
@@ -29,6 +30,8 @@ from lcv_replay.cli.record import (
     ODOM_TOPIC_OPTION,
     RIGHT_TOPIC_OPTION,
 )
+
+logger = logging.getLogger(__name__)
 
 
 class ConstraintChoice(str, enum.Enum):
@@ -110,10 +113,12 @@ class _ServeUntilInterrupted:
     def on_finish(self, summary) -> None:
         import time
 
+        from lcv_replay.shutdown import stop_requested
+
         typer.echo(f"serving the recording at {self.rerun_sink.served_url} — press Ctrl-C to stop", err=True)
         try:
-            while True:
-                time.sleep(1.0)
+            while not stop_requested():
+                time.sleep(0.2)
         except KeyboardInterrupt:
             pass
 
@@ -121,7 +126,14 @@ class _ServeUntilInterrupted:
         pass
 
 
-@app.command("replay", hidden=True, help="Replay LOG.mcap (or a ROS bag, converted on the fly) through retrieval and incremental verification, logging every step to Rerun.")
+class ReplayCommand(LcvCommand):
+    """The default command: its usage is ``lcv-replay LOG.mcap [OPTIONS]``."""
+
+    def format_usage(self, ctx, formatter) -> None:
+        formatter.write_usage(ctx.parent.command_path if ctx.parent else ctx.command_path, "LOG.mcap [OPTIONS]")
+
+
+@app.command("replay", cls=ReplayCommand, hidden=True, help="Replay LOG.mcap (or a ROS bag, converted on the fly) through retrieval and incremental verification, logging every step to Rerun.")
 def replay_command(
     logs: list[Path] = typer.Argument(..., metavar="LOG", help="An lcv-replay MCAP log, or a ROS 1 bag (split parts), ROS 2 bag folder, .db3 or ROS 2 .mcap (converted first)."),
     rate: str = typer.Option("max", "--rate", "-r", help="Playback rate: 1.0 = real time by the log's timestamps; 'max' = as fast as possible."),
@@ -129,9 +141,9 @@ def replay_command(
     duration: Optional[float] = typer.Option(None, "--duration", help="Replay only this many seconds."),
     method: Optional[str] = typer.Option(None, "--method", "-m", help="Verifier: ilv (the paper), ilv+, none, ir-only, dcs, gm, cauchy, gnc, oracle (default: the config's verification.method)."),
     constraints: Optional[ConstraintChoice] = typer.Option(None, "--constraints", case_sensitive=False, help="Loop constraints from our retrieval on the images, the log's /loop_candidates, or both (default: log if it has candidates, else images)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="TOML config over the paper defaults (unknown keys are refused)."),
+    config: Optional[Path] = config_option("over the paper defaults, unknown keys refused"),
     seed: Optional[int] = typer.Option(None, "--seed", help="Seed of retrieval and verification (default: the config's)."),
-    save: Optional[Path] = typer.Option(None, "--save", help="Write the Rerun recording here, overwriting it (default: LOG.rrd next to the log, or in the current folder if that one is not writable)."),
+    save: Optional[Path] = typer.Option(None, "--save", help="Write the Rerun recording here (default: LOG.rrd next to the log, or in the current folder if that one is not writable)."),
     no_save: bool = typer.Option(False, "--no-save", help="Write no .rrd (with --spawn/--connect/--serve)."),
     spawn: bool = typer.Option(False, "--spawn", help="Open a Rerun viewer and stream to it."),
     connect: Optional[str] = typer.Option(None, "--connect", help="Stream to a running viewer, e.g. rerun+http://127.0.0.1:9876/proxy."),
@@ -156,18 +168,21 @@ def replay_command(
     ground_truth_topic: Optional[str] = GROUND_TRUTH_TOPIC_OPTION,
     ground_truth_from_tf: Optional[str] = GROUND_TRUTH_FROM_TF_OPTION,
     keep_converted: bool = typer.Option(False, "--keep-converted", help="For a bag: write the converted log beside it (NAME.lcv.mcap) instead of the cache (~/.cache/lcv-replay/converted)."),
+    force: bool = force_option("the recording, the summary JSON, the report and the export folder's files"),
 ) -> None:
     import dataclasses
 
     from lcv_replay.config import load_config
     from lcv_replay.pacing import parse_rate
-    from lcv_replay.replay import ReplayOptions, StopToken, replay
+    from lcv_replay.replay import ReplayOptions, replay
+    from lcv_replay.shutdown import StopToken
 
     topic_flags = {
         "--left-topic": left_topic, "--right-topic": right_topic, "--no-images": no_images or None,
         "--odom-topic": odom_topic, "--odom-from-tf": odom_from_tf, "--ground-truth-topic": ground_truth_topic,
         "--ground-truth-from-tf": ground_truth_from_tf, "--keep-converted": keep_converted or None,
     }
+    check_outputs(None if no_rerun or no_save else save, summary_json, report, force=force, folder=export)  # before converting a bag
     stop = StopToken()
     field = _field_log(logs, topic_flags, follow=follow, recover=recover, quiet=quiet, idle_timeout_s=idle_timeout, stop=stop)
     log = field.path
@@ -194,8 +209,14 @@ def replay_command(
     if not no_rerun:
         from lcv_replay.sinks.config import RerunOutputs
 
+        save_path = None if no_save else (save if save is not None else field.default_rrd)
+        # A file the user names is never overwritten without --force; the default recording beside
+        # the log is the replay's own output, replaced by each run (as 'lcv-replay demo' does).
+        check_outputs(save_path, force=force or save is None)
+        if save is None and save_path is not None and save_path.exists():
+            logger.info("replacing %s (the default recording; name one with --save to keep this one)", save_path)
         outputs = RerunOutputs(
-            save=None if no_save else (save if save is not None else field.default_rrd),
+            save=save_path,
             spawn=spawn, connect=connect, serve=serve, grpc_port=grpc_port, web_port=web_port,
             memory_limit=memory_limit,
         )
@@ -203,13 +224,13 @@ def replay_command(
                         export=export, report=report)
     try:
         summary = replay(options, sinks, stop=stop)
-    except KeyboardInterrupt:  # before the first frame (a follower waiting for the recorder)
+    except KeyboardInterrupt as exc:  # before the first frame (a follower waiting for the recorder)
         typer.echo("interrupted before the first frame: nothing to summarise", err=True)
-        raise typer.Exit(130) from None
+        raise typer.Exit(getattr(exc, "exit_code", 130)) from None
     finally:
         field.close()
     if summary.interrupted:
-        raise typer.Exit(130)
+        raise typer.Exit(stop.exit_code)
 
 
 @dataclass

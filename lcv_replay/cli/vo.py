@@ -12,7 +12,7 @@ from typing import Optional
 
 import typer
 
-from lcv_replay.cli.app import app
+from lcv_replay.cli.app import app, check_outputs, config_option, force_option
 from lcv_replay.cli.record import recording_progress
 
 
@@ -53,24 +53,26 @@ def vo_summary_lines(result, ground_truth) -> list[str]:
 def vo_command(
     log: Path = typer.Argument(..., help="An lcv-replay MCAP log with stereo images and calibration."),
     out: Path = typer.Option(..., "--out", "-o", help="Output .mcap (written atomically; never the input)."),
-    config: Optional[Path] = typer.Option(None, "--config", help="TOML config; its [vo] table (keys of VoConfig) applies."),
+    config: Optional[Path] = config_option("its [vo] table (keys of VoConfig) applies"),
     replace_odometry: bool = typer.Option(False, "--replace-odometry", help="Replace the log's existing /odom and /tf."),
     summary_json: Optional[Path] = typer.Option(None, "--json", help="Also write the run summary (per-frame quality included) as JSON."),
-    force: bool = typer.Option(False, "--force", "-f", help="Overwrite OUT if it exists."),
+    force: bool = force_option("OUT and the --json summary"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar and no summary."),
 ) -> None:
     import json
 
-    from lcv_replay.fileio import check_output_path, write_text_atomic
+    from lcv_replay.fileio import write_text_atomic
     from lcv_replay.log.reader import open_log
+    from lcv_replay.shutdown import StopToken, stop_on_signals
     from lcv_replay.vo.log_vo import add_vo_odometry
 
     vo_config = load_vo_config(config)
-    if summary_json is not None:
-        check_output_path(summary_json, force=True)
+    check_outputs(summary_json, force=force)
     with open_log(log) as reader:
         frames, ground_truth = reader.info.frames, reader.ground_truth()
-    with recording_progress("stereo VO", quiet=quiet) as progress:
+    stop = StopToken()
+    with stop_on_signals(stop, what="stopping after this frame and writing the log so far"), \
+            recording_progress("stereo VO", quiet=quiet) as progress:
         on_step = None if progress is None else (lambda step: progress(step.index + 1, frames))
         stats = add_vo_odometry(log, out, vo_config, force=force, replace_odometry=replace_odometry, on_step=on_step)
     if summary_json is not None:
@@ -85,3 +87,6 @@ def vo_command(
         for line in vo_summary_lines(stats.result, ground_truth):
             typer.echo(line)
         typer.echo(f"wrote {stats.path}" + (" (replaced the log's odometry)" if stats.replaced_odometry else ""))
+    if stats.interrupted:
+        typer.echo(f"INTERRUPTED: {stats.path} holds the first {len(stats.result.steps)} of {stats.frames_planned} frames", err=True)
+        raise typer.Exit(stop.exit_code)

@@ -292,7 +292,7 @@ class Metrics:
     Attributes:
         truth_source: labels, ground truth or none.
         candidates: constraints in the history.
-        accepted: the accepted-loop metrics (issue 3).
+        accepted: the metrics of the accepted loops.
         paper: the paper's own precision/recall over the constraints consistent with the top
             hypothesis under the T_p test (sec. II-A), ``result.paper_consistent_ids``.
         ate: ``None`` without ground truth.

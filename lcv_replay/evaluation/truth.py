@@ -17,8 +17,8 @@ and arrays; nothing here reads a file.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from enum import Enum
+from pathlib import Path
 from typing import TYPE_CHECKING, Iterable, Sequence
 
 import numpy as np

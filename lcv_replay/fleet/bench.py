@@ -23,6 +23,7 @@ Measured in one run, side by side (the machine is shared; ratios are what hold):
 
 from __future__ import annotations
 
+import logging
 import os
 import statistics
 import tempfile
@@ -112,14 +113,27 @@ def measure_scaling(logs: Sequence[Path], options: Any, workers: Sequence[int], 
 
 def measure_overheads(log: Path, options: Any, base: Path, *, tasks: int, note: Callable[[str], None]) -> dict[str, Any]:
     """Ray's own costs around a 1-frame replay (see the module docstring)."""
-    import ray
-
-    from lcv_replay.fleet.engine import Cluster, ClusterSpec
     from lcv_replay.fleet.inputs import FleetLog
-    from lcv_replay.fleet.task import LogJob, run_log
+    from lcv_replay.fleet.task import LogJob
 
     one_frame = replace(options, log_path=log, duration_s=1e-6, rate=None)
     job = LogJob(FleetLog(log, "one-frame"), base / "overhead" / "one-frame", one_frame, "bench")
+    # the in-process replays would print their INFO line each, 20 times over: the figures are the output
+    package_logger = logging.getLogger("lcv_replay")
+    level = package_logger.level
+    package_logger.setLevel(max(level, logging.WARNING))
+    try:
+        return _measure_overheads(job, tasks=tasks, note=note)
+    finally:
+        package_logger.setLevel(level)
+
+
+def _measure_overheads(job: Any, *, tasks: int, note: Callable[[str], None]) -> dict[str, Any]:
+    import ray
+
+    from lcv_replay.fleet.engine import Cluster, ClusterSpec
+    from lcv_replay.fleet.task import run_log
+
     outcome = run_log(job)  # warm this process's imports
     if outcome.status != "ok":
         raise RuntimeError(f"the 1-frame replay failed: {outcome.error}")

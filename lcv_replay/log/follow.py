@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 import numpy as np
+from mcap.records import Header, Metadata
 
 from lcv_replay.errors import ConfigError, LogFormatError
 from lcv_replay.log import format as fmt
@@ -51,11 +52,11 @@ from lcv_replay.log.container import (
     MAGIC,
     ChunkInfo,
     Container,
-    _decompress_chunk_body,
-    _header_library,
-    _read_record,
+    _message_head,
     _register_definition,
     _scan_chunk,
+    decompress_chunk,
+    parse_record,
 )
 from lcv_replay.log.reader import LogReader
 from lcv_replay.records import Frame, FrameWindow
@@ -64,7 +65,6 @@ log = logging.getLogger(__name__)
 
 _OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06
 _OP_METADATA, _OP_DATA_END = 0x0C, 0x0F
-_MESSAGE_HEADER = struct.Struct("<HIQQ")
 
 #: Seconds between two looks at the file while waiting for it to grow.
 DEFAULT_POLL_S = 0.05
@@ -145,15 +145,20 @@ class ChunkTail:
         return new
 
     def _record(self, opcode: int, body: bytes) -> bool:
+        """Index one complete record (through the container's parse guards: damage ends the follow
+        at this record, as ``--recover`` would)."""
+        try:
+            return self._index(opcode, body)
+        except LogFormatError as exc:
+            self.damaged = exc.message
+            return False
+
+    def _index(self, opcode: int, body: bytes) -> bool:
         c = self.container
         if opcode == _OP_CHUNK:
-            start_time, end_time = struct.unpack_from("<QQ", body)
-            try:
-                data = _decompress_chunk_body(body, self._pos, self.path)
-                found = _scan_chunk(data, len(c.chunks), c, self.path)
-            except LogFormatError as exc:
-                self.damaged = exc.message
-                return False
+            data = decompress_chunk(body, self._pos, self.path)
+            found = _scan_chunk(data, len(c.chunks), self._pos, c, self.path)
+            start_time, end_time = struct.unpack_from("<QQ", body)  # the chunk parsed: these are there
             chunk_no = len(c.chunks)
             c.chunks.append(ChunkInfo(self._pos, len(body), start_time, end_time))
             c._cache[chunk_no] = data  # the reader decodes from it without reading the file again
@@ -164,19 +169,17 @@ class ChunkTail:
                 self.max_log_time_ns = max(self.max_log_time_ns, int(table["log_time"].max()))
             return True
         if opcode in (_OP_SCHEMA, _OP_CHANNEL):
-            _register_definition(c, opcode, body)
+            _register_definition(c, opcode, body, self._pos, self.path)
             return True
         if opcode == _OP_METADATA:
-            from mcap.records import Metadata
-
-            record = _read_record(Metadata, body)
+            record = parse_record(Metadata, body, offset=self._pos, path=self.path)
             c.metadata[record.name] = dict(record.metadata)
             return True
         if opcode == _OP_HEADER:
-            c.library = _header_library(body)
+            c.library = parse_record(Header, body, offset=self._pos, path=self.path).library
         elif opcode == _OP_MESSAGE:  # a message outside any chunk (an unchunked writer)
-            channel_id, _seq, log_time, _pub = _MESSAGE_HEADER.unpack_from(body)
-            self._parts.setdefault(channel_id, []).append(np.array([(log_time, -1, self._pos)], dtype=ENTRY_DTYPE))
+            channel_id, log_time = _message_head(body, self._pos, self.path, "")
+            self._parts.setdefault(channel_id, []).append(np.array([(log_time, -1, self._pos, channel_id)], dtype=ENTRY_DTYPE))
             self.max_log_time_ns = max(self.max_log_time_ns, int(log_time))
             return True
         return False
@@ -354,6 +357,10 @@ class FollowReader:
     def _wait_once(self) -> bool:
         """Sleep one poll period; ``False`` when waiting should end (idle timeout or stop)."""
         if self._stop():
+            if self._snapshot is None:  # stopped before the first frame: nothing to follow
+                from lcv_replay.shutdown import Interrupted, current_signal
+
+                raise Interrupted(current_signal())
             self._end_now("stopped")
             return False
         idle_s = self._clock() - self._last_growth

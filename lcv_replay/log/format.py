@@ -6,6 +6,8 @@ and the frame's ``stamp_ns`` as ``log_time`` (and ``publish_time``).
 
 from __future__ import annotations
 
+import math
+
 LEFT_IMAGE_TOPIC = "/stereo/left/image"  # foxglove.CompressedImage (png default, jpeg) or foxglove.RawImage
 RIGHT_IMAGE_TOPIC = "/stereo/right/image"
 LEFT_CALIBRATION_TOPIC = "/stereo/left/calibration"  # foxglove.CameraCalibration
@@ -24,6 +26,45 @@ METADATA_NAME = "lcv"  # MCAP metadata record: dataset, nominal_rate_hz, recorde
 RECORDER_CONFIG_METADATA_NAME = "lcv.recorder_config"  # the recorder's full configuration (JSON values)
 
 FORMAT_VERSION = "1"
+
+#: Plausibility bounds of the values a log carries (beyond them a value is damage, not data): planar
+#: coordinates within ±1e8 m (100,000 km: any Earth-fixed frame fits), information entries within
+#: ±1e12 (a standard deviation of a micrometre).
+MAX_COORDINATE_M = 1e8
+MAX_INFORMATION = 1e12
+
+
+def pose_problem(x_m: float, y_m: float, yaw_rad: float) -> str | None:
+    """Why a planar pose cannot be data (``"not finite"``, ``"out of range"``), or ``None``."""
+    if not all(map(math.isfinite, (x_m, y_m, yaw_rad))):
+        return "not finite"
+    if abs(x_m) > MAX_COORDINATE_M or abs(y_m) > MAX_COORDINATE_M:
+        return f"out of range (|x|, |y| <= {MAX_COORDINATE_M:g} m)"
+    return None
+
+
+def information_problem(values) -> str | None:
+    """Why information-matrix entries cannot be data, or ``None``."""
+    if not all(math.isfinite(float(v)) for v in values):
+        return "not finite"
+    if any(abs(float(v)) > MAX_INFORMATION for v in values):
+        return f"out of range (entries within ±{MAX_INFORMATION:g})"
+    return None
+
+
+#: `lcv` metadata key: what the recorder accepted but warned about, a JSON object of counts.
+RECORDER_WARNINGS_KEY = "recorder_warnings"
+#: Human names of the counts (``lcv-replay info``, the record summary); unknown keys print as they are.
+RECORDER_WARNING_NAMES = {
+    "singular_odometry_information": "odometry edges with a singular or non-positive-definite information matrix",
+    "singular_loop_information": "loop edges with a singular or non-positive-definite information matrix",
+    "duplicate_edges": "duplicate edges (the same two vertices as an earlier edge)",
+}
+
+
+def describe_warnings(counts: dict[str, int]) -> str:
+    """``'3 duplicate edges (...), 1 odometry edges with ...'`` (empty for no warning)."""
+    return ", ".join(f"{n} {RECORDER_WARNING_NAMES.get(key, key)}" for key, n in sorted(counts.items()) if n)
 
 # Written into the `lcv` metadata record so that a log explains itself.
 FRAME_CONVENTIONS = (

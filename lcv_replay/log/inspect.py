@@ -11,6 +11,7 @@ from __future__ import annotations
 import datetime as _dt
 from typing import Any
 
+from lcv_replay.log.format import describe_warnings
 from lcv_replay.log.reader import LogInfo
 
 
@@ -48,6 +49,7 @@ def info_to_json(info: LogInfo) -> dict[str, Any]:
         "dropped_unpaired_images": info.dropped_unpaired_images,
         "recovered_messages": info.recovered_messages,
         "skipped_chunks": info.skipped_chunks,
+        "recorder_warnings": dict(info.recorder_warnings),
     }
 
 
@@ -102,6 +104,8 @@ def format_info(info: LogInfo) -> str:
         )
     else:
         lines.append("Dataset:           unknown (no 'lcv' metadata record)")
+    if info.recorder_warnings:
+        lines.append(f"Warnings:          {describe_warnings(info.recorder_warnings)} (when recorded)")
     if info.dropped_unpaired_images:
         lines.append(f"Dropped:           {info.dropped_unpaired_images} stereo images without a partner")
     if info.recovered_messages is not None:

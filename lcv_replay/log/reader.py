@@ -100,6 +100,7 @@ class LogInfo:
     true_loop_count: int = 0
     image_format: str | None = None
     library: str = ""
+    recorder_warnings: dict[str, int] = field(default_factory=dict)  # lcv.recorder_warnings: counts by kind
     growing: bool = False  # opened while still being written (--follow): frames and counts are those known so far
 
 
@@ -119,6 +120,8 @@ class _Tables:
 
 
 _MISSING = -2  # chunk value of a joined row without a message
+# What a JSON message of the wrong shape raises while parsed (a list for an object, deep nesting, ...).
+_JSON_ERRORS = (ValueError, KeyError, TypeError, AttributeError, RecursionError)
 
 
 def open_log(path: str | Path, *, recover: bool = False, stereo_tolerance_ns: int | None = None) -> "LogReader":
@@ -279,8 +282,12 @@ class LogReader:
         return self._ground_truth.copy()
 
     def check(self) -> None:
-        """Full check: every chunk's CRC, finite odometry, valid candidates/labels (decodes everything but images)."""
+        """Full check: every chunk's CRC, the data-section CRC, finite odometry, valid candidates/labels.
+
+        Decodes everything but images.
+        """
         self._c.verify_chunks()
+        self._c.verify_data_section()
         if self._tables.odom is not None:
             self.odometry()
         self.ground_truth()
@@ -321,6 +328,9 @@ class LogReader:
             bad = np.flatnonzero(np.diff(table["log_time"]) <= 0)
             if len(bad):
                 k = int(bad[0]) + 1
+                # Message indexes carry no CRC: blame the stamps only once the messages confirm them.
+                self._c.read_entry(table[k - 1])
+                self._c.read_entry(table[k])
                 raise LogFormatError(
                     f"timestamps go backwards on {topic}: message {k} has log_time {int(table['log_time'][k])} ns, "
                     f"not after message {k - 1} at {int(table['log_time'][k - 1])} ns",
@@ -332,6 +342,12 @@ class LogReader:
         e = self._topic_entries
         left, right, odom = e[fmt.LEFT_IMAGE_TOPIC], e[fmt.RIGHT_IMAGE_TOPIC], e[fmt.ODOM_TOPIC]
         if not any(len(table) for table in self._c.entries.values()):
+            if self._c.recovered_messages is not None:
+                raise LogFormatError(
+                    f"--recover salvaged nothing: {self._c.damage or 'the file holds no message'}",
+                    path=self.path,
+                    fix="the file is damaged before its first complete chunk; re-copy it from its source or re-record it",
+                )
             raise LogFormatError(
                 "the log is empty: it has no messages",
                 path=self.path,
@@ -442,15 +458,22 @@ class LogReader:
         for key, value in c.metadata.get(fmt.RECORDER_CONFIG_METADATA_NAME, {}).items():
             try:
                 config[key] = json.loads(value)
-            except ValueError:
+            except (ValueError, RecursionError):
                 config[key] = value
         try:
             information = messages.information_from_json(meta.get("odometry_information"))
-        except (ValueError, TypeError):
+        except (*_JSON_ERRORS, OverflowError):
+            information = np.zeros(0)
+        if information is not None and (information.shape != (3, 3) or fmt.information_problem(information.ravel())):
             raise LogFormatError(
-                "the lcv metadata's odometry_information is not a 3x3 JSON matrix", path=self.path, fix="re-record the log"
-            ) from None
+                "the lcv metadata's odometry_information is not a 3x3 JSON matrix of plausible numbers",
+                path=self.path,
+                fix="re-record the log",
+            )
         stamps = t.stamps_ns
+        warnings = _warning_counts(meta.get(fmt.RECORDER_WARNINGS_KEY))
+        if warnings is None:
+            log.warning("%s: ignoring the unreadable lcv metadata %s", self.path, fmt.RECORDER_WARNINGS_KEY)
         try:
             nominal = float(meta["nominal_rate_hz"])
         except (KeyError, ValueError):
@@ -488,6 +511,7 @@ class LogReader:
             true_loop_count=int(len(t.true_loops)),
             image_format=image_format,
             library=c.library,
+            recorder_warnings=warnings or {},
         )
 
     # -- decoding ----------------------------------------------------------------------------------
@@ -500,7 +524,7 @@ class LogReader:
 
     def _decode(self, row: np.void) -> tuple[Any, Any]:
         """Decode the message at a table row; returns ``(raw message, decoded object)``."""
-        raw = self._c.read_message(int(row["chunk"]), int(row["offset"]))
+        raw = self._c.read_entry(row)
         channel = self._c.channels.get(raw.channel_id)
         if channel is None:
             raise LogFormatError(f"a message refers to unknown channel {raw.channel_id}", path=self.path, fix="re-record the log")
@@ -546,10 +570,11 @@ class LogReader:
         if table is None or table[i]["chunk"] == _MISSING:
             return None
         pose = messages.pose_from_pose_in_frame(self._decode(table[i])[1])
-        if not all(math.isfinite(v) for v in pose):
-            if allow_missing:
+        problem = fmt.pose_problem(*pose)
+        if problem is not None:
+            if allow_missing and problem == "not finite":
                 return None
-            raise self._not_finite(topic, i, pose)
+            raise self._bad_pose(topic, i, pose, problem)
         return pose
 
     def _poses(self, table: np.ndarray, topic: str, *, allow_missing: bool) -> np.ndarray:
@@ -565,14 +590,15 @@ class LogReader:
                     fix="record odometry for every frame",
                 )
             pose = messages.pose_from_pose_in_frame(self._decode(table[i])[1])
-            if not all(math.isfinite(v) for v in pose) and not allow_missing:
-                raise self._not_finite(topic, i, pose)
+            problem = fmt.pose_problem(*pose)
+            if problem is not None and not (allow_missing and problem == "not finite"):
+                raise self._bad_pose(topic, i, pose, problem)
             out[i] = pose
         return out
 
-    def _not_finite(self, topic: str, i: int, pose: Pose2D) -> LogFormatError:
+    def _bad_pose(self, topic: str, i: int, pose: Pose2D, problem: str) -> LogFormatError:
         return LogFormatError(
-            f"{topic} of frame {i} (stamp {int(self._tables.stamps_ns[i])} ns) is not finite: "
+            f"{topic} of frame {i} (stamp {int(self._tables.stamps_ns[i])} ns) is {problem}: "
             f"x={pose.x_m}, y={pose.y_m}, yaw={pose.yaw_rad}",
             path=self.path,
             fix="fix the odometry source and re-record the log",
@@ -582,16 +608,27 @@ class LogReader:
         raw, data = self._decode(row)
         try:
             candidate = messages.candidate_from_json(data)
-        except (ValueError, KeyError, TypeError) as exc:
+        except _JSON_ERRORS as exc:
             raise self._bad_json(fmt.LOOP_CANDIDATES_TOPIC, raw.log_time_ns, exc) from None
         self._check_pair(candidate.pair, fmt.LOOP_CANDIDATES_TOPIC)
+        problem = None
+        if candidate.T_match_query is not None and fmt.pose_problem(*candidate.T_match_query):
+            problem = f"T_match_query {tuple(candidate.T_match_query)} is {fmt.pose_problem(*candidate.T_match_query)}"
+        elif candidate.information is not None and fmt.information_problem(candidate.information):
+            problem = f"information {candidate.information} is {fmt.information_problem(candidate.information)}"
+        if problem is not None:
+            raise LogFormatError(
+                f"{fmt.LOOP_CANDIDATES_TOPIC} candidate {candidate.pair} at {raw.log_time_ns} ns: {problem}",
+                path=self.path,
+                fix="fix the place recognizer's output and re-record the log",
+            )
         return candidate
 
     def _decode_true_loop(self, row: np.void) -> tuple[int, int]:
         raw, data = self._decode(row)
         try:
             pair = messages.true_loop_from_json(data)
-        except (ValueError, KeyError, TypeError) as exc:
+        except _JSON_ERRORS as exc:
             raise self._bad_json(fmt.TRUE_LOOPS_TOPIC, raw.log_time_ns, exc) from None
         self._check_pair(pair, fmt.TRUE_LOOPS_TOPIC)
         return pair
@@ -654,6 +691,19 @@ def _match(
     keep = np.ones(len(ib), dtype=bool)
     keep[1:] = ib[1:] != ib[:-1]
     return ia[keep].astype(np.int64), ib[keep].astype(np.int64)
+
+
+def _warning_counts(text: str | None) -> dict[str, int] | None:
+    """The ``recorder_warnings`` metadata value as counts; ``{}`` when absent, ``None`` when unreadable."""
+    if not text:
+        return {}
+    try:
+        value = json.loads(text)
+    except (ValueError, RecursionError):
+        return None
+    if not isinstance(value, dict) or not all(isinstance(n, int) and not isinstance(n, bool) for n in value.values()):
+        return None
+    return {str(k): int(n) for k, n in value.items()}
 
 
 def _rows_by_frame(table: np.ndarray, frames: np.ndarray, first: int, last: int) -> dict[int, list]:

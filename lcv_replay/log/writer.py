@@ -36,7 +36,7 @@ from mcap_protobuf.schema import register_schema
 
 from lcv_replay import __version__
 from lcv_replay.errors import RecorderError
-from lcv_replay.fileio import atomic_output
+from lcv_replay.fileio import atomic_output, is_write_failure, write_error
 from lcv_replay.log import format as fmt
 from lcv_replay.log import images, messages
 from lcv_replay.records import LoopCandidate, Pose2D, StereoCalibration
@@ -56,6 +56,7 @@ RESERVED_METADATA_KEYS = (
     "odometry_information",
     "image_format",
     "compression",
+    fmt.RECORDER_WARNINGS_KEY,
     "chunking",
 )
 
@@ -75,6 +76,8 @@ class LogWriter:
         compression: MCAP chunk compression.
         odometry_information: ``(3, 3)`` information matrix of one odometry step (x, y, yaw), if known.
         extra_metadata: more string entries for the ``lcv`` record (not the reserved keys).
+        recorder_warnings: counts of what the recorder accepted with a warning (e.g.
+            ``{"duplicate_edges": 3}``), stored as JSON under ``lcv.recorder_warnings``.
         chunk_size_bytes: target MCAP chunk size; smaller chunks make time-window reads finer.
         encode_threads: image-encoding worker threads; up to ``4 * encode_threads`` frames may be
             queued (encoding) before :meth:`write_frame` blocks. An encoding failure is raised by a
@@ -100,6 +103,7 @@ class LogWriter:
         compression: Literal["zstd", "lz4", "none"] = "zstd",
         odometry_information: np.ndarray | None = None,
         extra_metadata: dict[str, str] | None = None,
+        recorder_warnings: dict[str, int] | None = None,
         chunk_size_bytes: int = 1 << 20,
         encode_threads: int = 2,
         live: bool = False,
@@ -115,7 +119,7 @@ class LogWriter:
             raise RecorderError(f"nominal_rate_hz {nominal_rate_hz} must be a positive number")
         if odometry_information is not None:
             odometry_information = np.asarray(odometry_information, dtype=np.float64)
-            if odometry_information.shape != (3, 3) or not np.all(np.isfinite(odometry_information)):
+            if odometry_information.shape != (3, 3) or fmt.information_problem(odometry_information.ravel()):
                 raise RecorderError(
                     f"odometry_information must be a finite (3, 3) matrix, got shape {odometry_information.shape}"
                 )
@@ -123,6 +127,8 @@ class LogWriter:
         clash = sorted(set(extra) & set(RESERVED_METADATA_KEYS))
         if clash:
             raise RecorderError(f"extra_metadata may not set the reserved keys {clash}")
+        if recorder_warnings:
+            extra[fmt.RECORDER_WARNINGS_KEY] = json.dumps({str(k): int(v) for k, v in sorted(recorder_warnings.items())})
         try:
             config_record = {str(k): json.dumps(v, sort_keys=True) for k, v in recorder_config.items()}
         except (TypeError, ValueError) as exc:
@@ -159,6 +165,7 @@ class LogWriter:
                 chunk_size=int(chunk_size_bytes),
                 compression=_COMPRESSION[compression],
                 enable_crcs=True,
+                enable_data_crcs=True,  # lets `info --check` verify metadata and message indexes too
             )
             self._mcap.start(profile="", library=f"lcv-replay/{__version__}")
             self._mcap.add_metadata(
@@ -182,6 +189,12 @@ class LogWriter:
             self._mcap.add_metadata(fmt.RECORDER_CONFIG_METADATA_NAME, config_record)
             if self.live:
                 self._stream.flush()
+        except OSError as exc:
+            error = write_error(self.path, exc) if is_write_failure(exc) else None
+            self._abort(*_exc_info())
+            if error is None:
+                raise
+            raise error from None
         except BaseException:
             self._abort(*_exc_info())
             raise
@@ -193,6 +206,10 @@ class LogWriter:
     def __exit__(self, exc_type, exc, tb) -> bool:
         if exc_type is None:
             self.close()
+        elif is_write_failure(exc):  # a full disk while writing a frame: one error naming the path
+            error = write_error(self.path, exc)
+            self._abort(exc_type, exc, tb)
+            raise error from None
         else:
             self._abort(exc_type, exc, tb)
         return False
@@ -205,7 +222,9 @@ class LogWriter:
     def close(self) -> None:
         """Finish the MCAP (summary, indexes) and rename the temp file onto ``path``.
 
-        Raises :class:`RecorderError` (and leaves no file) when no frame was written.
+        Raises :class:`RecorderError` (and leaves no file) when no frame was written, and
+        :class:`~lcv_replay.errors.OutputError` (naming the path and the free space) when the disk
+        is full or the folder unwritable.
         """
         if self._closed:
             return
@@ -221,6 +240,12 @@ class LogWriter:
             self._drain()
             self._mcap.finish()
             self._stream.close()
+        except OSError as exc:
+            error = write_error(self.path, exc) if is_write_failure(exc) else None  # before the clean-up
+            self._abort(*_exc_info())
+            if error is None:
+                raise
+            raise error from None
         except BaseException:
             self._abort(*_exc_info())
             raise
@@ -326,8 +351,9 @@ class LogWriter:
                 fix="every frame must carry the same kinds of data (ground truth excepted)",
             )
         for name, pose in (("odometry", odom), ("ground truth", ground_truth)):
-            if pose is not None and not all(math.isfinite(float(v)) for v in pose):
-                raise RecorderError(f"frame {index}: {name} {tuple(pose)} is not finite", path=self.path)
+            problem = None if pose is None else fmt.pose_problem(*(float(v) for v in pose))
+            if problem is not None:
+                raise RecorderError(f"frame {index}: {name} {tuple(pose)} is {problem}", path=self.path)
 
         checked = {}
         try:
@@ -373,11 +399,16 @@ class LogWriter:
         if not math.isfinite(float(candidate.similarity)):
             raise RecorderError(f"loop candidate {candidate.pair} has similarity {candidate.similarity}", path=self.path)
         if candidate.information is not None and (
-            len(candidate.information) != 6 or not all(math.isfinite(float(v)) for v in candidate.information)
+            len(candidate.information) != 6 or fmt.information_problem(candidate.information)
         ):
-            raise RecorderError(f"loop candidate {candidate.pair}: information must be 6 finite numbers", path=self.path)
-        if candidate.T_match_query is not None and not all(math.isfinite(float(v)) for v in candidate.T_match_query):
-            raise RecorderError(f"loop candidate {candidate.pair}: T_match_query is not finite", path=self.path)
+            raise RecorderError(
+                f"loop candidate {candidate.pair}: information must be 6 numbers within ±{fmt.MAX_INFORMATION:g}", path=self.path
+            )
+        if candidate.T_match_query is not None and fmt.pose_problem(*(float(v) for v in candidate.T_match_query)):
+            raise RecorderError(
+                f"loop candidate {candidate.pair}: T_match_query is {fmt.pose_problem(*(float(v) for v in candidate.T_match_query))}",
+                path=self.path,
+            )
         self._write_json(
             fmt.LOOP_CANDIDATES_TOPIC,
             messages.LOOP_CANDIDATE_SCHEMA,
@@ -572,3 +603,26 @@ def _exc_info():
     import sys
 
     return sys.exc_info()
+
+
+class MessageCopier:
+    """Copies messages read from one MCAP (``mcap.reader`` triples) into an ``mcap.writer.Writer``,
+    registering each schema and channel once (``lcv-replay vo``, the fuzz benchmark's plain copies)."""
+
+    def __init__(self, writer: McapWriter):
+        self.writer = writer
+        self._schemas: dict[int, int] = {}
+        self._channels: dict[int, int] = {}
+
+    def add(self, schema: Any, channel: Any, message: Any) -> None:
+        """Write ``message`` of ``channel`` (with ``schema``, or ``None``) as it was."""
+        channel_id = self._channels.get(channel.id)
+        if channel_id is None:
+            schema_id = 0
+            if schema is not None:
+                if schema.id not in self._schemas:
+                    self._schemas[schema.id] = self.writer.register_schema(schema.name, schema.encoding, schema.data)
+                schema_id = self._schemas[schema.id]
+            channel_id = self.writer.register_channel(channel.topic, channel.message_encoding, schema_id, dict(channel.metadata))
+            self._channels[channel.id] = channel_id
+        self.writer.add_message(channel_id, message.log_time, message.data, message.publish_time, message.sequence)

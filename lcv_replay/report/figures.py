@@ -8,7 +8,6 @@ gives the same bytes.
 
 from __future__ import annotations
 
-import io
 import math
 from typing import Sequence
 
@@ -37,9 +36,9 @@ def _figure(width_in: float, height_in: float):
 
 
 def _png(fig) -> bytes:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=DPI, metadata={"Software": None})
-    return buf.getvalue()
+    from lcv_replay.htmlpage import png_bytes
+
+    return png_bytes(fig, dpi=DPI)
 
 
 # --------------------------------------------------------------------------------------- map

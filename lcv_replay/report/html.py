@@ -9,62 +9,15 @@ The same record gives the same page, byte for byte.
 
 from __future__ import annotations
 
-import base64
-import html
-from typing import Any, Iterable, Sequence
+from typing import Sequence
 
+from lcv_replay import htmlpage as hp
 from lcv_replay.report import figures
 from lcv_replay.sinks.layout import flatten
 from lcv_replay.sinks.run_record import LoopRecord, RunRecord
 
 #: Rows of the wrong / missed loop tables beyond which the rest is summarised (loops.csv has all).
 MAX_TABLE_ROWS = 400
-
-_STYLE = """
-body { font-family: system-ui, -apple-system, "Segoe UI", Roboto, sans-serif; margin: 24px auto; max-width: 1100px;
-       color: #1b1b1b; line-height: 1.4; padding: 0 16px; }
-h1 { font-size: 22px; margin-bottom: 4px; } h2 { font-size: 18px; margin-top: 32px; border-bottom: 1px solid #ddd; }
-.verdict { font-size: 16px; padding: 10px 14px; border-radius: 6px; background: #f2f6ff; border-left: 5px solid #3b6fd4; }
-.verdict.bad { background: #fff1f0; border-left-color: #e0201e; } .verdict.good { background: #effaf1; border-left-color: #23b04a; }
-table { border-collapse: collapse; font-size: 13px; margin: 8px 0; }
-td, th { border: 1px solid #ddd; padding: 3px 8px; text-align: left; vertical-align: top; }
-th { background: #f4f4f4; } td.num { text-align: right; font-variant-numeric: tabular-nums; }
-td.why { color: #555; } figure { margin: 12px 0; } figure img { max-width: 100%; border: 1px solid #eee; }
-figcaption { font-size: 13px; color: #444; } code { background: #f4f4f4; padding: 0 3px; }
-details summary { cursor: pointer; color: #3b6fd4; } .muted { color: #777; }
-"""
-
-
-def _esc(value: Any) -> str:
-    return html.escape(str(value), quote=True)
-
-
-def _num(value: Any, fmt: str = ".3f") -> str:
-    if value is None:
-        return "n/a"
-    if isinstance(value, float):
-        return format(value, fmt)
-    return str(value)
-
-
-def _figure(png: bytes | None, alt: str, caption: str) -> str:
-    if png is None:
-        return f'<p class="muted">{_esc(alt)}: nothing to draw for this run.</p>'
-    data = base64.b64encode(png).decode("ascii")
-    return (f'<figure><img alt="{_esc(alt)}" src="data:image/png;base64,{data}">'
-            f"<figcaption>{_esc(caption)}</figcaption></figure>")
-
-
-def _table(header: Sequence[str], rows: Iterable[Sequence[Any]], *, numeric: Sequence[bool] | None = None) -> str:
-    out = ["<table><tr>" + "".join(f"<th>{_esc(h)}</th>" for h in header) + "</tr>"]
-    for row in rows:
-        cells = []
-        for i, value in enumerate(row):
-            cls = ' class="num"' if numeric and i < len(numeric) and numeric[i] else ""
-            cells.append(f"<td{cls}>{_esc(value)}</td>")
-        out.append("<tr>" + "".join(cells) + "</tr>")
-    out.append("</table>")
-    return "".join(out)
 
 
 def verdict(record: RunRecord) -> tuple[str, str]:
@@ -75,7 +28,7 @@ def verdict(record: RunRecord) -> tuple[str, str]:
         return "", f"{s.get('accepted')} loop closures accepted of {s.get('constraints')} constraints (the log has no truth to judge them)."
     first = record.first_wrong_acceptance()
     text = (f"{counts['wrong']} wrong loop closure(s) accepted, {counts['missed']} true loop(s) missed; "
-            f"precision {_num(s.get('precision'))}, recall {_num(s.get('recall'))}, ATE {_num(s.get('ate_rmse_m'), '.2f')} m.")
+            f"precision {hp.num(s.get('precision'))}, recall {hp.num(s.get('recall'))}, ATE {hp.num(s.get('ate_rmse_m'), '.2f')} m.")
     if first is not None:
         text += f" First wrong acceptance: constraint {first.constraint_id} ({first.query_frame}↔{first.match_frame}) at frame {first.first_accepted_frame}."
     return ("bad" if counts["wrong"] else "good"), text
@@ -99,16 +52,16 @@ def summary_rows(record: RunRecord) -> list[tuple[str, str, str]]:
     }.get(record.constraint_source, record.constraint_source)
     hyp = s.get("hypotheses")
     return [
-        ("log", record.log, f"{record.frames} frames, {_num(s.get('log_duration_s'), '.1f')} s of log"),
+        ("log", record.log, f"{record.frames} frames, {hp.num(s.get('log_duration_s'), '.1f')} s of log"),
         ("method", record.method, "the verifier (ilv: the paper; ilv+: the improved default)"),
         ("constraints", str(s.get("constraints")), f"loop candidates admitted, from {source_why}"),
         ("accepted", str(s.get("accepted")), "constraints the final rank-1 hypothesis accepts"),
-        ("precision", _num(s.get("precision")), f"true / accepted ({s.get('true_positives')} true, {s.get('false_positives')} false); truth from {truth_why}"),
-        ("recall", _num(s.get("recall")), f"accepted true / all true candidates ({s.get('false_negatives')} true loops missed)"),
-        ("ATE RMSE", f"{_num(s.get('ate_rmse_m'), '.2f')} m", "position error of the final estimate after SE(2) alignment to the ground truth"),
+        ("precision", hp.num(s.get("precision")), f"true / accepted ({s.get('true_positives')} true, {s.get('false_positives')} false); truth from {truth_why}"),
+        ("recall", hp.num(s.get("recall")), f"accepted true / all true candidates ({s.get('false_negatives')} true loops missed)"),
+        ("ATE RMSE", f"{hp.num(s.get('ate_rmse_m'), '.2f')} m", "position error of the final estimate after SE(2) alignment to the ground truth"),
         ("hypotheses", "n/a" if hyp is None else str(hyp), "hypotheses kept at the end (bounded by verification.max_hypotheses)"),
         ("windows", str(len(record.windows)), f"verifier steps, one every W = {window} frames and one at the end"),
-        ("wall time", f"{_num(s.get('wall_time_s'), '.1f')} s", f"{_num(s.get('x_real_time'), '.1f')} × real time; set-up {_num(s.get('setup_time_s'), '.1f')} s"),
+        ("wall time", f"{hp.num(s.get('wall_time_s'), '.1f')} s", f"{hp.num(s.get('x_real_time'), '.1f')} × real time; set-up {hp.num(s.get('setup_time_s'), '.1f')} s"),
     ] + ([("interrupted", "yes", "stopped early (Ctrl-C): figures as of the last completed window")] if s.get("interrupted") else [])
 
 
@@ -127,9 +80,9 @@ _LOOP_NUMERIC = (True, True, True, False, False, True, True, True, True)
 
 def _loops_section(title: str, loops: Sequence[LoopRecord], empty: str) -> str:
     if not loops:
-        return f"<h3>{_esc(title)} (0)</h3><p class='muted'>{_esc(empty)}</p>"
+        return f"<h3>{hp.esc(title)} (0)</h3><p class='muted'>{hp.esc(empty)}</p>"
     more = f"<p class='muted'>… and {len(loops) - MAX_TABLE_ROWS} more (all in loops.csv of --export).</p>" if len(loops) > MAX_TABLE_ROWS else ""
-    return f"<h3>{_esc(title)} ({len(loops)})</h3>" + _table(_LOOP_HEADER, _loop_rows(loops), numeric=_LOOP_NUMERIC) + more
+    return f"<h3>{hp.esc(title)} ({len(loops)})</h3>" + hp.table(_LOOP_HEADER, _loop_rows(loops), numeric=_LOOP_NUMERIC) + more
 
 
 def render(record: RunRecord) -> str:
@@ -141,45 +94,42 @@ def render(record: RunRecord) -> str:
     transient = [l for l in record.loops if l.dropped_frame is not None]
     gate = [w.gate_chi2 for w in record.windows if w.gate_chi2 is not None]
     s = record.summary
+    title = f"lcv-replay report: {name} · {record.method}"
     parts = [
-        "<!DOCTYPE html>",
-        '<html lang="en"><head><meta charset="utf-8">',
-        f"<title>lcv-replay report: {_esc(name)} · {_esc(record.method)}</title>",
-        f"<style>{_STYLE}</style></head><body>",
-        f"<h1>lcv-replay report: {_esc(name)} · {_esc(record.method)}</h1>",
-        f'<p class="verdict {cls}">{_esc(sentence)}</p>',
+        f"<h1>lcv-replay report: {hp.esc(name)} · {hp.esc(record.method)}</h1>",
+        f'<p class="verdict {cls}">{hp.esc(sentence)}</p>',
         "<h2>Summary</h2>",
-        _table(("figure", "value", "what it means"), summary_rows(record)),
+        hp.table(("figure", "value", "what it means"), summary_rows(record)),
         "<details><summary>Configuration (loads back with <code>--config</code> from the export's config.toml)</summary>",
-        _table(("key", "value"), sorted((k, v) for k, v in flatten(dict(record.config)).items())),
+        hp.table(("key", "value"), sorted((k, v) for k, v in flatten(dict(record.config)).items())),
         "</details>",
         "<details><summary>Log metadata</summary>",
-        _table(("key", "value"), sorted((k, v) for k, v in flatten(dict(record.log_metadata)).items())),
+        hp.table(("key", "value"), sorted((k, v) for k, v in flatten(dict(record.log_metadata)).items())),
         "</details>",
         "<h2>Final map</h2>",
-        _figure(figures.map_figure(record), "final map",
+        hp.figure(figures.map_figure(record), "final map",
                 "The final estimate with every accepted loop (green: true, red: false), the true loops it missed "
                 "(orange, dashed) and the rejected candidates (faint); ground truth and odometry underneath."),
         "<h2>Precision, recall and ATE over time</h2>",
-        _figure(figures.metrics_figure(record), "metrics over time",
+        hp.figure(figures.metrics_figure(record), "metrics over time",
                 "At each window end, over the constraints arrived so far: precision and recall of the accepted set "
                 "(fixed 0..1 axis), the ATE of the rank-1 estimate and the number of accepted loops."),
         "<h2>The paper's figures</h2>",
         "<h3>Fig. U: precision–recall</h3>",
-        _figure(figures.pr_figure(record), "precision-recall",
+        hp.figure(figures.pr_figure(record), "precision-recall",
                 "Thresholding place recognition's similarity alone (grey) against the verifier's operating points; the "
                 "gold curve sweeps a gate over each constraint's d² under the final estimate; the diamond is what the "
                 "paper's IR-only baseline (X constraints accepted at random) achieves on average."),
         "<h3>Fig. V: the top hypotheses at the end</h3>",
-        _figure(figures.hypotheses_figure(record), "top hypotheses",
+        hp.figure(figures.hypotheses_figure(record), "top hypotheses",
                 "Each of the final top hypotheses' trajectories, in rank order; a red title counts the false "
                 "constraints the hypothesis optimises."),
         "<h3>Fig. W: consistent hypothesis–constraint pairs at three windows</h3>",
-        _figure(figures.consistency_figure(record), "consistency",
+        hp.figure(figures.consistency_figure(record), "consistency",
                 "Rows: the top hypotheses by rank; columns: the constraints on which they disagree (those that "
                 "separate rank 1 from rank 2 first), sorted by pattern so that each hypothesis' block shows."),
         "<h3>Fig. X: generation graph of the top hypotheses</h3>",
-        _figure(figures.tree_figure(record), "generation graph",
+        hp.figure(figures.tree_figure(record), "generation graph",
                 "The ancestry of the final top hypotheses from the odometry-only root; each edge is the constraint the "
                 "child added (absorb: every constraint consistent with the parent)."),
         "<h2>Wrong and missed loops</h2>",
@@ -190,15 +140,14 @@ def render(record: RunRecord) -> str:
         "(3 degrees of freedom; χ²(3) at 0.99 is 11.34)"
         + (f"; the ilv+ gate in force at the end was {gate[-1]:.4g}" if gate else "") + ".</p>",
         "<h2>Timings</h2>",
-        _table(("figure", "value"), [
-            ("wall time of the replay loop", f"{_num(s.get('wall_time_s'), '.2f')} s"),
-            ("× real time", _num(s.get("x_real_time"), ".2f")),
-            ("set-up (open the log, models, warm-up)", f"{_num(s.get('setup_time_s'), '.2f')} s"),
+        hp.table(("figure", "value"), [
+            ("wall time of the replay loop", f"{hp.num(s.get('wall_time_s'), '.2f')} s"),
+            ("× real time", hp.num(s.get("x_real_time"), ".2f")),
+            ("set-up (open the log, models, warm-up)", f"{hp.num(s.get('setup_time_s'), '.2f')} s"),
             ("verifier time over all windows", f"{sum(sum(w.timings_s.values()) for w in record.windows):.2f} s"),
         ]),
-        _figure(figures.timing_figure(record), "timings", "Verifier time per window by stage, and wall time per frame."),
-        f"<p class='muted'>Generated by lcv-replay from {_esc(record.log)} (seed {record.seed}).</p>",
-        "</body></html>",
+        hp.figure(figures.timing_figure(record), "timings", "Verifier time per window by stage, and wall time per frame."),
+        f"<p class='muted'>Generated by lcv-replay from {hp.esc(record.log)} (seed {record.seed}).</p>",
     ]
-    return "\n".join(parts) + "\n"
+    return hp.page(title, "\n".join(parts))
 

@@ -28,7 +28,7 @@ from typing import Iterable, Iterator
 import numpy as np
 
 from lcv_replay.errors import RetrievalError
-from lcv_replay.fileio import atomic_output
+from lcv_replay.fileio import atomic_output, user_cache_dir
 from lcv_replay.records import Frame
 from lcv_replay.retrieval.descriptors import DescriptorBackend
 
@@ -65,8 +65,7 @@ def default_cache_dir() -> Path:
     """``$LCV_CACHE_DIR``, else ``$XDG_CACHE_HOME/lcv-replay/descriptors`` (``~/.cache/...``)."""
     if os.environ.get("LCV_CACHE_DIR"):
         return Path(os.environ["LCV_CACHE_DIR"])
-    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return base / "lcv-replay" / "descriptors"
+    return user_cache_dir("descriptors")
 
 
 def log_cache_key(path: Path) -> str:

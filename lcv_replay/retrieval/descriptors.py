@@ -217,14 +217,26 @@ def _make_thumbnail(config: RetrievalConfig) -> DescriptorBackend:
 
 
 class EfficientNetLite0Backend:
-    """ImageNet EfficientNet-Lite0 features, pooled and L2-normalised, on the CPU with torch.
+    """ImageNet EfficientNet-Lite0 features, pooled and L2-normalised, on the CPU.
 
-    Built once: loads the packaged weights, folds BatchNorm and padding into the convolutions
-    (exact, see :mod:`lcv_replay.retrieval.efficientnet`), switches to channels_last, tunes the
-    allocator and thread count, and runs one warm-up batch (``warmup_s`` records the whole cost).
+    Two engines compute the same descriptor (``retrieval.engine``; ``"auto"`` = torch in mode
+    "paper", ONNX Runtime otherwise):
+
+    * ``"onnxruntime"``: the folded model exported to ONNX at first use and cached
+      (:mod:`lcv_replay.retrieval.onnx_engine`); as fast as torch here, starts without importing torch,
+      and never spins its threads (docs/retrieval.md).
+      When it cannot run (no onnxruntime, a failed export) ``"auto"`` falls back to torch with a
+      warning; an explicit ``"onnxruntime"`` is an error.
+    * ``"torch"``: loads the packaged weights, folds BatchNorm and padding into the convolutions
+      (exact, see :mod:`lcv_replay.retrieval.efficientnet`), switches to channels_last, tunes the
+      allocator, the thread count and OpenMP's wait policy (passive: see ``tune_omp_wait``). ``precision = "bf16"`` and ``torch_compile`` are torch options
+      and select it.
+
+    Built once, with one warm-up batch (``warmup_s`` records the whole cost).
 
     Attributes:
         dim: 1280 for ``avg``/``gem`` pooling, 1904 for ``multi``.
+        engine: the engine in use, ``"onnxruntime"`` or ``"torch"``.
         warmup_s: seconds spent building and warming up the model.
     """
 
@@ -234,24 +246,45 @@ class EfficientNetLite0Backend:
         from lcv_replay.retrieval import efficientnet as enet
 
         start = time.perf_counter()
+        enet.tune_omp_wait()  # before anything imports torch (the ONNX export does, once)
         self._enet = enet
         self.input_size_px = config.input_size_px
         self.batch_size = config.batch_size
-        if config.tune_allocator:
-            enet.tune_allocator()
-        self.num_threads = enet.set_threads(config.num_threads)
-        self._torch = enet.import_torch()
         self.pooling = enet.pooling_spec(config.pooling, config.gem_p)
         self.dim = self.pooling.dim
         self.precision = config.precision
+        self.compiled = config.torch_compile
+        self.engine = config.resolved_engine
+        torch_only = [name for name, on in (("precision = 'bf16'", config.precision == "bf16"), ("torch_compile", config.torch_compile)) if on]
+        if self.engine == "onnxruntime" and torch_only:
+            if config.engine == "onnxruntime":
+                raise RetrievalError(f"retrieval.{torch_only[0]} is a torch option", fix="set retrieval.engine = 'torch' or 'auto'")
+            self.engine = "torch"
+        self._onnx = None
+        if self.engine == "onnxruntime":
+            from lcv_replay.retrieval.onnx_engine import OnnxDescriptorModel
+
+            try:
+                self._onnx = OnnxDescriptorModel(self.input_size_px, self.pooling, num_threads=config.num_threads)
+                self.num_threads = self._onnx.num_threads
+            except RetrievalError as exc:
+                if config.engine == "onnxruntime":
+                    raise
+                log.warning("%s: ONNX Runtime unavailable (%s); using torch", self.name, exc)
+                self.engine = "torch"
+        if self.engine == "torch":
+            if config.tune_allocator:
+                enet.tune_allocator()
+            self.num_threads = enet.set_threads(config.num_threads)
+            self._torch = enet.import_torch()
+            reference = enet.load_reference_model(self.input_size_px)
+            self.model = enet.build_folded_model(reference, taps=self.pooling.taps).to(memory_format=self._torch.channels_last)
+            if self.compiled:
+                self.model = enet.compile_model(self.model)
         self.signature = (
             f"pooling={self.pooling.method},p={self.pooling.gem_p:g},taps={'+'.join(self.pooling.taps)},norm=127/128,{self.precision}"
+            + (",onnxruntime" if self.engine == "onnxruntime" else "")
         )
-        reference = enet.load_reference_model(self.input_size_px)
-        self.model = enet.build_folded_model(reference, taps=self.pooling.taps).to(memory_format=self._torch.channels_last)
-        self.compiled = config.torch_compile
-        if self.compiled:
-            self.model = enet.compile_model(self.model)
         self._adapt = ImageAdapter(self.name, width_px=self.input_size_px, height_px=self.input_size_px, channels=3)
         self.describe_prepared(np.zeros((self.batch_size, self.input_size_px, self.input_size_px, 3), np.uint8))
         self.warmup_s = time.perf_counter() - start
@@ -267,6 +300,8 @@ class EfficientNetLite0Backend:
 
     def describe_prepared(self, batch: np.ndarray) -> np.ndarray:
         """``(B, S, S, 3)`` uint8 RGB at the input size -> ``(B, D)`` descriptors (one forward pass)."""
+        if self._onnx is not None:
+            return self._onnx(batch)
         torch = self._torch
         count = batch.shape[0]
         if self.compiled and count < self.batch_size:  # one static shape: no recompilation for a short batch
@@ -283,6 +318,6 @@ class EfficientNetLite0Backend:
             return self._enet.pool_features(maps, self.pooling).numpy()[:count]
 
 
-@register_backend("efficientnet-lite0", help="ImageNet EfficientNet-Lite0 pooled conv features (torch, CPU)")
+@register_backend("efficientnet-lite0", help="ImageNet EfficientNet-Lite0 pooled conv features (ONNX Runtime or torch, CPU)")
 def _make_efficientnet_lite0(config: RetrievalConfig) -> DescriptorBackend:
     return EfficientNetLite0Backend(config)

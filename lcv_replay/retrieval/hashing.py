@@ -77,9 +77,12 @@ class BinaryHasher:
         return self.encode_projected(self.project(descriptors))
 
     def encode_projected(self, projected: np.ndarray) -> np.ndarray:
-        """``(N, K)`` PCA vectors (from :meth:`project`) -> ``(N,)`` packed codes."""
+        """``(N, K)`` PCA vectors (from :meth:`project`) -> ``(N,)`` packed codes.
+
+        Codes of more than 64 bits come as an object array of Python ints (bit ``k`` = ``1 << k``).
+        """
         rotated = projected[:, : self.code_bits] @ self.rotation
-        return pack_bits(rotated > 0.0)
+        return pack_bits(rotated > 0.0) if self.code_bits <= 64 else pack_bits_wide(rotated > 0.0)
 
 
 def code_dtype(code_bits: int) -> np.dtype:
@@ -97,6 +100,16 @@ def pack_bits(bits: np.ndarray) -> np.ndarray:
     dtype = code_dtype(bits.shape[1])
     weights = np.left_shift(np.ones(bits.shape[1], dtype=dtype), np.arange(bits.shape[1], dtype=dtype))
     return np.bitwise_or.reduce(np.where(bits, weights, dtype.type(0)), axis=1).astype(dtype, copy=False)
+
+
+def pack_bits_wide(bits: np.ndarray) -> np.ndarray:
+    """``(N, B)`` bool, any ``B`` -> ``(N,)`` object array of Python ints (bit ``k`` = ``1 << k``)."""
+    bits = np.asarray(bits, dtype=bool)
+    words = [pack_bits(bits[:, w : w + 64]).astype(np.uint64) for w in range(0, bits.shape[1], 64)]
+    out = np.empty(bits.shape[0], dtype=object)
+    for i in range(bits.shape[0]):
+        out[i] = sum(int(word[i]) << (64 * w) for w, word in enumerate(words))
+    return out
 
 
 def unpack_bits(codes: np.ndarray, code_bits: int) -> np.ndarray:

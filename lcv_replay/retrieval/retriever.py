@@ -10,19 +10,30 @@ Online use (the default, ``fit = "online"``)::
         output.candidates                # up to N_r LoopCandidate, best first
         output.diagnostics               # None while warming up
 
-No frame queries until the warm-up is over: the first ``warmup_frames = max(Δt, N_b + 1)``
-descriptors fit PCA and the ITQ rotation (:mod:`lcv_replay.retrieval.hashing`), then enter the
-index without querying (none of them could have an eligible match ``|t - t'| > Δt`` anyway when
-``Δt >= N_b + 1``). After that each added frame first queries the index (frames ``t' < t - Δt``,
-Hamming distance ``<= T_b``, top ``N_r`` by L2) and is then added to it.
+No frame queries until the warm-up is over: the first ``warmup_frames`` descriptors fit PCA and
+the ITQ rotation (:mod:`lcv_replay.retrieval.hashing`), then enter the index without querying
+(none of them could have an eligible match ``|t - t'| > Δt`` anyway when the warm-up is ``Δt``).
+After that each added frame first queries the index (frames ``t' < t - Δt``) and is then added to
+it. The warm-up is ``max(Δt, N_b + 1)`` in mode "paper"; in mode "ranked" it is ``max(Δt, 9)`` and
+the code is shortened, to a multiple of 8 bits, when the fitting frames span fewer PCA axes than
+``ranked.code_bits`` (``N - 1`` axes for ``N`` frames: a 21-frame warm-up gives 16-bit codes).
+
+The mode (``retrieval.mode``) picks the index (:mod:`lcv_replay.retrieval.index`):
+
+* ``"ranked"`` (default): 128-bit codes, the ``M = 100`` Hamming-nearest eligible frames, top ``N_r``
+  by L2 (:class:`~lcv_replay.retrieval.index.RankedIndex`);
+* ``"paper"``: 20-bit codes, frames within Hamming ``T_b = 3``, top ``N_r`` by L2
+  (:class:`~lcv_replay.retrieval.index.CodeIndex`), bit-identical to the pipeline before modes.
 
 Post-mortem use (``fit = "whole-log"``): call :meth:`Retriever.fit` with every descriptor of the
 log first; then every :meth:`add` queries.
 
-``similarity`` of a candidate is ``1 - d^2 / 2`` for re-rank distance ``d``: the cosine similarity
-of the L2-normalised descriptors with ``rerank = "descriptor"`` (the default); with
-``rerank = "pca"`` it is the same expression on the PCA vectors (monotone in ``d``, no longer a
-cosine).
+Each candidate carries its re-rank L2 distance ``l2_distance`` and its Hamming distance. Its
+``similarity`` is, in mode ``"ranked"``, calibrated to the log (0 = as alike as two unrelated
+frames, 1 = identical; :mod:`lcv_replay.retrieval.similarity`) and, in mode ``"paper"``,
+``1 - d^2 / 2`` for re-rank distance ``d``: the cosine similarity of the L2-normalised descriptors
+with ``rerank = "descriptor"`` (the default); with ``rerank = "pca"`` it is the same expression on
+the PCA vectors (monotone in ``d``, no longer a cosine).
 """
 
 from __future__ import annotations
@@ -36,7 +47,8 @@ from lcv_replay.errors import RetrievalError
 from lcv_replay.records import LoopCandidate
 from lcv_replay.retrieval.config import RetrievalConfig
 from lcv_replay.retrieval.hashing import BinaryHasher, fit_hasher
-from lcv_replay.retrieval.index import CodeIndex
+from lcv_replay.retrieval.index import CodeIndex, RankedIndex
+from lcv_replay.retrieval.similarity import background_sq_distance, calibrated_similarity
 
 log = logging.getLogger(__name__)
 
@@ -50,8 +62,9 @@ class QueryDiagnostics:
     Attributes:
         query_frame: the query's frame index.
         code: the query's packed binary code (bit ``k`` = ``1 << k``).
-        code_bits: ``N_b``.
-        prefilter_size: eligible library frames within Hamming ``T_b`` of the code.
+        code_bits: the code length of the mode (``N_b`` in mode "paper").
+        prefilter_size: eligible library frames passed to the L2 re-rank: those within Hamming
+            ``T_b`` of the code (paper), or the ``M`` nearest (ranked).
         top: the re-ranked top ``N_r`` (the same records as the output's candidates).
         l2_distances: re-rank L2 distance of each entry of ``top``.
         library_size: library frames at query time (eligible or not).
@@ -66,6 +79,7 @@ class QueryDiagnostics:
     l2_distances: tuple[float, ...]
     library_size: int = 0
     eligible_size: int = 0
+    mode: str = "paper"
 
     @property
     def code_bit_string(self) -> str:
@@ -85,6 +99,25 @@ class RetrievalOutput:
 
 
 _WARMING_UP = RetrievalOutput((), None)
+_MIN_RANKED_BITS = 8
+
+
+def ranked_code_bits(config: RetrievalConfig, *, frames: int, dim: int) -> int:
+    """The ranked code length for a fit on ``frames`` descriptors of ``dim`` dimensions.
+
+    ``ranked.code_bits``, shortened to the largest multiple of 8 that the fit's PCA axes
+    (``min(pca_dims, dim, frames - 1)``) can carry, with an info line when it is shortened.
+    """
+    axes = min(config.pca_dims, dim, frames - 1)
+    bits = min(config.ranked.code_bits, _MIN_RANKED_BITS * (axes // _MIN_RANKED_BITS))
+    if bits < _MIN_RANKED_BITS:
+        raise RetrievalError(
+            f"{frames} descriptors of {dim} dimensions span {axes} PCA axes, fewer than the {_MIN_RANKED_BITS} bits of the shortest ranked code",
+            fix="use a longer log or warm-up (retrieval.exclusion_frames)",
+        )
+    if bits < config.ranked.code_bits:
+        log.info("retrieval: ranked codes shortened to %d bits: %d fitting frames span %d PCA axes", bits, frames, axes)
+    return bits
 
 
 class Retriever:
@@ -98,15 +131,17 @@ class Retriever:
     def __init__(self, config: RetrievalConfig, *, dim: int):
         if dim < 1:
             raise RetrievalError(f"descriptor dimension {dim} must be >= 1")
-        if dim < config.code_bits:
-            raise RetrievalError(
-                f"descriptors of {dim} dimensions cannot give {config.code_bits}-bit codes",
-                fix="lower retrieval.code_bits",
-            )
         self.config = config
         self.dim = dim
+        self.code_bits = config.active_code_bits  # ranked: the target length until the fit settles it
+        if dim < self.min_fit_frames - 1:
+            raise RetrievalError(
+                f"descriptors of {dim} dimensions cannot give {self.min_fit_frames - 1}-bit codes",
+                fix="lower retrieval.code_bits" if config.mode == "paper" else "use a descriptor of at least 8 dimensions",
+            )
         self._hasher: BinaryHasher | None = None
-        self._index: CodeIndex | None = None
+        self._index: CodeIndex | RankedIndex | None = None
+        self._background_sq: float | None = None  # d0^2 of the calibrated similarity (mode "ranked")
         self._pending: list[tuple[int, np.ndarray]] = []  # warm-up frames (online fit)
         self._last_frame: int | None = None
         self.queries = 0
@@ -123,9 +158,14 @@ class Retriever:
         return self._hasher
 
     @property
+    def min_fit_frames(self) -> int:
+        """Fewest descriptors a fit accepts: ``N_b + 1`` (paper), or 9 for 8-bit ranked codes."""
+        return self.config.code_bits + 1 if self.config.mode == "paper" else _MIN_RANKED_BITS + 1
+
+    @property
     def warmup_frames(self) -> int:
-        """Descriptors needed before the online fit: ``max(Δt, N_b + 1)``."""
-        return max(self.config.exclusion_frames, self.config.code_bits + 1)
+        """Descriptors needed before the online fit: ``max(Δt, min_fit_frames)``."""
+        return max(self.config.exclusion_frames, self.min_fit_frames)
 
     @property
     def warmup_remaining(self) -> int:
@@ -142,8 +182,8 @@ class Retriever:
             return None
         return (
             f"retrieval never queried: the log gave {len(self._pending)} usable images, fewer than the "
-            f"{self.warmup_frames} needed to fit PCA and the {self.config.code_bits}-bit codes "
-            f"(max(Δt = {self.config.exclusion_frames}, N_b + 1)); lower retrieval.exclusion_frames "
+            f"{self.warmup_frames} needed to fit PCA and the binary codes "
+            f"(max(Δt = {self.config.exclusion_frames}, {self.min_fit_frames})); lower retrieval.exclusion_frames "
             "or use a longer log"
         )
 
@@ -156,11 +196,11 @@ class Retriever:
             RetrievalError: too few descriptors (fewer than ``N_b + 1``), with the numbers.
         """
         descriptors = self._check_batch(descriptors)
-        if descriptors.shape[0] < self.config.code_bits + 1:
+        if descriptors.shape[0] < self.min_fit_frames:
             raise RetrievalError(
-                f"the log has {descriptors.shape[0]} usable images; fitting {self.config.code_bits}-bit codes "
-                f"needs at least {self.config.code_bits + 1}",
-                fix="use a longer log or lower retrieval.code_bits",
+                f"the log has {descriptors.shape[0]} usable images; fitting {self.min_fit_frames - 1}-bit codes "
+                f"needs at least {self.min_fit_frames}",
+                fix="use a longer log" if self.config.mode == "ranked" else "use a longer log or lower retrieval.code_bits",
             )
         self._hasher = self._fit(descriptors)
         self._reset_index()
@@ -173,7 +213,7 @@ class Retriever:
         """
         if self.config.rerank != "descriptor":
             raise RetrievalError("refit needs the full descriptors", fix="use retrieval.rerank = 'descriptor'")
-        if self._index is None or len(self._index) < self.config.code_bits + 1:
+        if self._index is None or len(self._index) < self.min_fit_frames:
             raise RetrievalError("not enough library frames to refit", fix="add more frames first")
         frames = self._index.frames.copy()
         descriptors = self._index.vectors.copy()  # the full descriptors (rerank = "descriptor")
@@ -183,22 +223,26 @@ class Retriever:
 
     def _fit(self, descriptors: np.ndarray) -> BinaryHasher:
         c = self.config
-        hasher = fit_hasher(descriptors, pca_dims=c.pca_dims, code_bits=c.code_bits, iterations=c.itq_iterations, seed=c.seed)
+        if c.mode == "ranked":
+            self.code_bits = ranked_code_bits(c, frames=descriptors.shape[0], dim=descriptors.shape[1])
+        hasher = fit_hasher(descriptors, pca_dims=c.pca_dims, code_bits=self.code_bits, iterations=c.itq_iterations, seed=c.seed)
+        if c.mode == "ranked":
+            vectors = descriptors if c.rerank == "descriptor" else hasher.project(descriptors)
+            self._background_sq = background_sq_distance(vectors, min_gap_rows=max(1, c.exclusion_frames // 2))
         log.info(
             "retrieval: fitted PCA-%d + ITQ %d-bit codes on %d descriptors (quantisation loss %.3f)",
-            hasher.pca.dims, c.code_bits, descriptors.shape[0], hasher.quantisation_loss,
+            hasher.pca.dims, self.code_bits, descriptors.shape[0], hasher.quantisation_loss,
         )
         return hasher
 
     def _reset_index(self) -> None:
         assert self._hasher is not None
-        dim = self.dim if self.config.rerank == "descriptor" else self._hasher.pca.dims
-        self._index = CodeIndex(
-            code_bits=self.config.code_bits,
-            vector_dim=dim,
-            hamming_threshold=self.config.hamming_threshold,
-            strategy=self.config.index_strategy,
-        )
+        c = self.config
+        dim = self.dim if c.rerank == "descriptor" else self._hasher.pca.dims
+        if c.mode == "ranked":
+            self._index = RankedIndex(code_bits=self.code_bits, vector_dim=dim, candidates=c.ranked.candidates, engine=c.ranked.index)
+        else:
+            self._index = CodeIndex(code_bits=self.code_bits, vector_dim=dim, hamming_threshold=c.hamming_threshold, strategy=c.index_strategy)
 
     def _insert(self, frames: np.ndarray, descriptors: np.ndarray) -> None:
         assert self._hasher is not None and self._index is not None
@@ -242,7 +286,7 @@ class Retriever:
         return output
 
     def query(self, frame_index: int, descriptor: np.ndarray) -> RetrievalOutput:
-        """Query without adding: frames ``t' < frame_index - Δt``, Hamming ``<= T_b``, top ``N_r`` by L2."""
+        """Query without adding: frames ``t' < frame_index - Δt``, prefiltered by the mode, top ``N_r`` by L2."""
         if self._hasher is None or self._index is None:
             raise RetrievalError("the retriever is not fitted yet", fix="add warm-up frames or call fit()")
         c = self.config
@@ -252,27 +296,34 @@ class Retriever:
         vector = descriptor if c.rerank == "descriptor" else projected[0]
         max_frame = int(frame_index) - c.exclusion_frames - 1
         result = self._index.search(code, vector, max_frame_index=max_frame, top_k=c.top_k)
+        if c.mode == "ranked":
+            assert self._background_sq is not None
+            similarities = [float(s) for s in calibrated_similarity(result.l2_distances, self._background_sq)]
+        else:  # the paper mode's similarity as before modes existed, bit for bit
+            similarities = [float(1.0 - 0.5 * float(d) ** 2) for d in result.l2_distances]
         candidates = tuple(
             LoopCandidate(
                 query_frame=int(frame_index),
                 match_frame=int(match),
-                similarity=float(1.0 - 0.5 * float(d) ** 2),
+                similarity=similarity,
                 hamming=int(h),
                 source=SOURCE,
+                l2_distance=float(d),
             )
-            for match, d, h in zip(result.frames, result.l2_distances, result.hamming)
+            for match, d, h, similarity in zip(result.frames, result.l2_distances, result.hamming, similarities)
         )
         eligible = int(np.searchsorted(self._index.frames, max_frame, side="right"))
         self.queries += 1
         diagnostics = QueryDiagnostics(
             query_frame=int(frame_index),
             code=code,
-            code_bits=c.code_bits,
+            code_bits=self.code_bits,
             prefilter_size=result.prefilter_size,
             top=candidates,
             l2_distances=tuple(float(d) for d in result.l2_distances),
             library_size=len(self._index),
             eligible_size=eligible,
+            mode=c.mode,
         )
         return RetrievalOutput(candidates, diagnostics)
 

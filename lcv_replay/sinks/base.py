@@ -208,6 +208,13 @@ class RunSummary:
     accepted_constraint_ids: tuple[int, ...] = ()
     rrd: str | None = None
     config: Mapping[str, Any] = field(default_factory=dict)
+    # Recall against every true revisit (lcv_replay.evaluation.revisits), where the log has ground
+    # truth: frames within T_p of a frame more than Δt earlier, and how many got a true candidate
+    # (proposed) and an accepted true loop (closed); revisit_recall = closed / revisits.
+    revisits: int | None = None
+    revisits_proposed: int | None = None
+    revisits_closed: int | None = None
+    revisit_recall: float | None = None
 
     @property
     def realtime_factor(self) -> float | None:
@@ -231,6 +238,10 @@ class RunSummary:
             seed=self.seed,
             accepted_constraint_ids=list(self.accepted_constraint_ids),
             config=dict(self.config),
+            revisits=self.revisits,
+            revisits_proposed=self.revisits_proposed,
+            revisits_closed=self.revisits_closed,
+            revisit_recall=_json_number(self.revisit_recall),
         )
         return data
 

@@ -95,7 +95,7 @@ def anchor_to_first(reference: np.ndarray, first_pose: np.ndarray) -> np.ndarray
     reference = np.asarray(reference, dtype=np.float64)
     if len(reference) == 0:
         return reference.copy()
-    T = se2.compose(np.asarray(first_pose, dtype=np.float64), se2.inverse(reference[0]))
+    T = se2.compose(np.asarray(first_pose, dtype=np.float64), se2.between(reference[0], np.zeros(3)))  # reference[0]⁻¹
     return se2.compose(T, reference)
 
 
@@ -249,18 +249,20 @@ def hypotheses_markdown(
 
 
 def retrieval_markdown(query_frame: int, top_frames: Sequence[int], l2: Sequence[float], hamming: Sequence[int] | None,
-                       admitted: set[int]) -> str:
-    """Markdown table of the top-N retrieved frames of one query."""
+                       admitted: set[int], similarity: Sequence[float | None] | None = None) -> str:
+    """Markdown table of the top-N retrieved frames of one query (with each one's similarity, if given)."""
     lines = [
         f"**query frame {query_frame}**: {len(top_frames)} retrieved",
         "",
-        "| rank | frame | L2 distance | Hamming | constraint |",
-        "|---:|---:|---:|---:|---|",
+        "| rank | frame | L2 distance | Hamming | similarity | constraint |",
+        "|---:|---:|---:|---:|---:|---|",
     ]
     for rank, frame in enumerate(top_frames, start=1):
         ham = "—" if hamming is None else str(int(hamming[rank - 1]))
+        sim = similarity[rank - 1] if similarity is not None else None
         lines.append(
-            f"| {rank} | {int(frame)} | {float(l2[rank - 1]):.4f} | {ham} | {'yes' if int(frame) in admitted else 'no'} |"
+            f"| {rank} | {int(frame)} | {float(l2[rank - 1]):.4f} | {ham} | {'—' if sim is None else f'{sim:.3f}'} | "
+            f"{'yes' if int(frame) in admitted else 'no'} |"
         )
     return "\n".join(lines)
 

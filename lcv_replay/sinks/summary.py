@@ -80,6 +80,11 @@ def format_summary(summary: RunSummary, record: "RunRecord | None" = None) -> st
         else:
             lines.append(f"  recall            {num(summary.recall, '.3f')} = {summary.true_positives} of {true_total} true "
                          f"constraints accepted ({summary.false_negatives} missed)")
+        if summary.revisits is not None:
+            lines.append(
+                f"  revisit recall    {num(summary.revisit_recall, '.3f')} = {summary.revisits_closed} of {summary.revisits} "
+                f"revisits closed ({summary.revisits_proposed} proposed); a revisit: within T_p of a frame > Δt earlier"
+            )
     else:
         lines.append("  precision/recall  n/a: the log has neither loop labels nor ground truth")
     lines.append(
@@ -121,11 +126,11 @@ class SummarySink(BaseSink):
 
     def on_finish(self, summary: RunSummary) -> None:
         self.summary = summary
-        if self.json_path is not None:
-            write_text_atomic(self.json_path, summary_json(summary))
-        if self.stream is not None:
+        if self.stream is not None:  # first: a JSON that cannot be written (a full disk) loses no figure
             record = None if self.recorder is None else self.recorder.record
             print(format_summary(summary, record), file=self.stream, flush=True)
+        if self.json_path is not None:
+            write_text_atomic(self.json_path, summary_json(summary))
 
 
 def read_summary_json(path: str | Path) -> dict[str, Any]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
 
-from lcv_replay.errors import require
+from lcv_replay.errors import require, require_seed
 
 if TYPE_CHECKING:  # pragma: no cover
     import numpy as np
@@ -18,7 +18,7 @@ class BaselineConfig:
 
     solve_every: Literal["window", "end"] = "end"  # "end": one batch solve in result() (the classic set-up); "window": re-solve at every window end so a replay shows it evolving (about 3x the time on KITTI 00; GNC on Manhattan-1000 takes minutes per solve)
     accept_chi2: float = 7.81  # accept a loop whose whitened chi2 at the solution is below chi2(3 dof, 0.95)
-    dcs_phi: float = 100.0  # DCS Φ; Φ = 1 accepts nothing on robustslam_kitti (issue 3)
+    dcs_phi: float = 100.0  # DCS Φ; Φ = 1 accepts nothing on robustslam_kitti (docs/verification-bench.md)
     gm_c: float = 10.0  # Geman-McClure c (c² = 100); c = 1 accepts nothing on robustslam_kitti
     cauchy_c: float = 1.0  # Cauchy c
     gnc_weights_tol: float = 1e-9  # GTSAM's default 1e-4 stops GNC-TLS with every weight ~1e-5
@@ -78,7 +78,7 @@ class IlvPlusConfig:
 class VerificationConfig:
     """Multi-model hypothesize-and-verify (method ``ilv``) and its improved variant ``ilv+``."""
 
-    method: str = "ilv+"  # verifier name (registry); ilv+ measures better than the paper's ilv (issues 3 and 16)
+    method: str = "ilv+"  # verifier name (registry); ilv+ measures better than the paper's ilv (docs/verification-bench.md)
     consistency_radius_m: float = 10.0  # T_p: constraint consistent if endpoints closer (sec. II-A)
     window_frames: int = 500  # W: time-window length in frames (sec. II-D)
     iterations_per_window: int = 10  # generation iterations per window (sec. II-D)
@@ -99,6 +99,7 @@ class VerificationConfig:
         require(self.iterations_per_window >= 1, "verification.iterations_per_window", self.iterations_per_window, "an integer >= 1")
         require(self.hypotheses_per_iteration >= 1, "verification.hypotheses_per_iteration", self.hypotheses_per_iteration, "an integer >= 1")
         require(self.max_hypotheses >= self.hypotheses_per_iteration, "verification.max_hypotheses", self.max_hypotheses, "an integer >= hypotheses_per_iteration")
+        require_seed(self.seed, "config key 'verification.seed'")
         require(self.top_k_trajectories >= 1, "verification.top_k_trajectories", self.top_k_trajectories, "an integer >= 1")
         require(self.max_iterations >= 1, "verification.max_iterations", self.max_iterations, "an integer >= 1")
         require(all(s > 0 for s in self.odometry_sigmas), "verification.odometry_sigmas", self.odometry_sigmas, "three numbers > 0 [m, m, rad]")

@@ -273,7 +273,10 @@ class OdometryChain:
             a_i, b_i, k_i = node_frames[s_idx], node_frames[s_idx + 1], frames[interior]
             x_a, x_b = node_poses[s_idx], node_poses[s_idx + 1]
             odo_ab = se2.between(odom[a_i], odom[b_i])
-            zeta_b = se2.logmap(se2.compose(se2.between(x_a, x_b), se2.inverse(odo_ab)))
+            # (O_a⁻¹ O_b)⁻¹ as O_a⁻¹O_b relative to the identity: its heading re-wrapped, as the
+            # measured figures were computed (se2.inverse negates it exactly; the last bits differ).
+            odo_ba = se2.between(odo_ab, np.zeros_like(odo_ab))
+            zeta_b = se2.logmap(se2.compose(se2.between(x_a, x_b), odo_ba))
             ad_a = se2.adjoint(odom[a_i])
             inv_ad_a = se2.adjoint_inverse(odom[a_i])
             S = self._prefix

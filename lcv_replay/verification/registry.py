@@ -44,11 +44,7 @@ def register(name: str, *, help: str) -> Callable[[Factory], Factory]:
 
 def _load_all() -> None:
     for module in _METHOD_MODULES:
-        try:
-            importlib.import_module(module)
-        except ModuleNotFoundError as exc:  # a method module not written yet
-            if exc.name != module:
-                raise
+        importlib.import_module(module)
 
 
 def available_methods() -> dict[str, MethodInfo]:

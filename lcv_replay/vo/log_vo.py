@@ -25,6 +25,7 @@ from lcv_replay.log import format as fmt
 from lcv_replay.log import messages
 from lcv_replay.log.reader import LogReader, open_log
 from lcv_replay.records import Frame, Pose2D, StereoCalibration
+from lcv_replay.shutdown import raise_if_stopped, stop_requested
 from lcv_replay.vo.config import VoConfig
 from lcv_replay.vo.stereo_vo import StereoVoTracker, VoResult, VoStep, check_calibration, check_image_size, run_vo, to_grey
 
@@ -117,9 +118,23 @@ def run_vo_on_log(
     T_body_camera: np.ndarray | None = None,
     on_step: Callable[[VoStep], None] | None = None,
 ) -> VoResult:
-    """Stereo VO over every frame of an opened log (images decoded on the fly)."""
+    """Stereo VO over every frame of an opened log (images decoded on the fly).
+
+    A stop request (Ctrl-C, SIGTERM: :func:`lcv_replay.shutdown.stop_requested`) ends it after the
+    current frame: the result then covers the first frames only.
+    """
     calibration = stereo_calibration_of(reader)
-    return run_vo(stereo_pairs(reader, calibration), calibration, config, T_body_camera=T_body_camera, on_step=on_step)
+    return run_vo(_until_stopped(stereo_pairs(reader, calibration)), calibration, config, T_body_camera=T_body_camera, on_step=on_step)
+
+
+def _until_stopped(items: Iterable) -> Iterator:
+    """``items`` until a stop is requested (:class:`Interrupted` if that is before the first one)."""
+    for k, item in enumerate(items):
+        if stop_requested():
+            if k == 0:
+                raise_if_stopped()
+            return
+        yield item
 
 
 def camera_mount_of(reader: LogReader) -> np.ndarray | None:
@@ -167,6 +182,11 @@ class VoLogStats:
     path: Path
     result: VoResult
     replaced_odometry: bool
+    frames_planned: int | None = None  # set when a stop request ended the VO early (the log is cut there)
+
+    @property
+    def interrupted(self) -> bool:
+        return self.frames_planned is not None
 
 
 def refuse_input_as_output(source: Path, out: Path) -> None:
@@ -184,6 +204,7 @@ def write_log_with_odometry(
     force: bool = False,
     replace_odometry: bool = False,
     vo_metadata: dict[str, str] | None = None,
+    until_ns: int | None = None,
 ) -> Path:
     """Copy every record of ``source`` into ``out`` and add planar odometry on ``/odom`` and ``/tf``.
 
@@ -194,6 +215,7 @@ def write_log_with_odometry(
         replace_odometry: drop the source's ``/odom`` and ``/tf`` messages (otherwise a source with
             odometry is refused).
         vo_metadata: string entries of an extra ``lcv.vo`` metadata record.
+        until_ns: copy only the messages up to this ``log_time`` (the VO stopped early there).
 
     The ``lcv`` metadata record is copied with ``odometry_information`` cleared (the source's
     value, if any, described another odometry) and ``odometry_source`` set.
@@ -201,6 +223,8 @@ def write_log_with_odometry(
     from mcap.reader import make_reader
     from mcap.writer import CompressionType, Writer
     from mcap_protobuf.schema import register_schema
+
+    from lcv_replay.log.writer import MessageCopier
 
     source, out = Path(source), Path(out)
     refuse_input_as_output(source, out)
@@ -212,8 +236,7 @@ def write_log_with_odometry(
         header = reader.get_header()
         writer = Writer(fout, chunk_size=1 << 20, compression=CompressionType.ZSTD, enable_crcs=True)
         writer.start(profile=header.profile, library=f"lcv-replay/{__version__} vo (from {header.library})")
-        schemas: dict[int, int] = {}
-        channels: dict[int, int] = {}
+        copier = MessageCopier(writer)
         odom_channel = tf_channel = None
         pending = 0
 
@@ -231,6 +254,8 @@ def write_log_with_odometry(
                 pending += 1
 
         for schema, channel, message in reader.iter_messages(log_time_order=True):
+            if until_ns is not None and message.log_time > until_ns:
+                break
             if channel.topic in (fmt.ODOM_TOPIC, fmt.TF_TOPIC):
                 if not replace_odometry:
                     raise OdometryError(
@@ -240,14 +265,7 @@ def write_log_with_odometry(
                     )
                 continue
             flush_until(message.log_time)
-            if channel.id not in channels:
-                schema_id = 0
-                if schema is not None:
-                    if schema.id not in schemas:
-                        schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
-                    schema_id = schemas[schema.id]
-                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, schema_id, dict(channel.metadata))
-            writer.add_message(channels[channel.id], message.log_time, message.data, message.publish_time, message.sequence)
+            copier.add(schema, channel, message)
         flush_until(None)
         for record in reader.iter_metadata():
             data = dict(record.metadata)
@@ -306,13 +324,17 @@ def add_vo_odometry(
             fix="pass --replace-odometry to replace it with the VO odometry",
         )
     result = run_vo_on_log(reader, config, T_body_camera=camera_mount_of(reader), on_step=on_step)
+    done = len(result.steps)
+    stamps = reader.frame_stamps_ns[:done].tolist()
+    stopped = done < reader.info.frames
     write_log_with_odometry(
         log_path,
         out_path,
-        reader.frame_stamps_ns.tolist(),
+        stamps,
         [s.T_odom_base for s in result.steps],
         force=force,
         replace_odometry=replace_odometry,
         vo_metadata=vo_metadata_record(config, result),
+        until_ns=stamps[-1] if stopped else None,
     )
-    return VoLogStats(out_path, result, reader.info.has_odometry)
+    return VoLogStats(out_path, result, reader.info.has_odometry, reader.info.frames if stopped else None)

@@ -14,7 +14,7 @@ from lcv_replay.bench.verify import load_inputs, run_verification
 from lcv_replay.cli import app
 from lcv_replay.errors import ConfigError, LogFormatError, RecorderError
 from lcv_replay.verification.config import BaselineConfig, VerificationConfig
-from tests.conftest import SHARED_DATA, shared_path
+from tests.shared_data import SHARED_DATA, shared_path
 
 REQUIRED_KEYS = {
     "log", "method", "frames", "log_duration_s", "wall_time_s", "candidates", "accepted", "true_positives",

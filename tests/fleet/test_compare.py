@@ -60,7 +60,7 @@ def test_compare_flags_a_real_regression_between_two_batches(ray_cluster, fleet_
     html = (tmp_path / "compare.html").read_text()
     assert '<tr class="bad">' in html and html.count("<img") == 1
     # The same run against itself: nothing changed, exit 0.
-    code, out = _cli(["compare", tmp_path / "base", tmp_path / "base", "--out", tmp_path])
+    code, out = _cli(["compare", tmp_path / "base", tmp_path / "base", "--out", tmp_path, "--force"])  # compare.md exists
     assert code == 0 and "0 regressed" in out and "2 the same" in out, out
 
 

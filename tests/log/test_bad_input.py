@@ -21,7 +21,7 @@ from mcap_protobuf.schema import register_schema
 from typer.testing import CliRunner
 
 from lcv_replay.cli import app
-from lcv_replay.errors import LogFormatError
+from lcv_replay.errors import LogFormatError, RecorderError
 from lcv_replay.log import format as fmt
 from lcv_replay.log import messages
 from lcv_replay.log.container import load_container
@@ -169,14 +169,37 @@ def test_unknown_schema_on_a_known_topic(tmp_path):
     _assert_cli_error(path, "/odom has unknown schema 'nav_msgs/msg/Odometry'", "foxglove.PoseInFrame", "record rosbag")
 
 
-@pytest.mark.parametrize("bad_value", [math.nan, math.inf])
-def test_non_finite_odometry_names_the_frame(tmp_path, bad_value):
+@pytest.mark.parametrize("bad_value, problem", [(math.nan, "not finite"), (math.inf, "not finite"), (1.3e39, "out of range")])
+def test_non_finite_or_absurd_odometry_names_the_frame(tmp_path, bad_value, problem):
     records = [_odom(i * 100, x=float(i)) for i in range(6)]
     records[3] = _odom(300, x=bad_value)
     path = _raw_log(tmp_path / "nan.mcap", records)
-    _assert_cli_error(path, "/odom of frame 3", "not finite")
+    _assert_cli_error(path, "/odom of frame 3", problem)
     with pytest.raises(LogFormatError, match="frame 3"):
         open_log(path).odometry()
+
+
+def test_an_absurd_candidate_measurement_is_refused(tmp_path):
+    """A bit flip in a candidate's JSON can leave valid JSON with a value no verifier can use."""
+    from lcv_replay.log.writer import LogWriter
+    from lcv_replay.records import LoopCandidate
+
+    path = tmp_path / "cand.mcap"
+    with LogWriter(path, dataset="d", recorder="t", nominal_rate_hz=10, recorder_config={}, compression="none") as w:
+        for i in range(5):
+            w.write_frame(i, i * 100, odom=Pose2D(float(i), 0, 0))
+        w.write_loop_candidate(LoopCandidate(4, 1, T_match_query=Pose2D(0.5, 0.0, 0.0), information=(100.0, 0, 0, 100.0, 0, 100.0)), 400)
+    from lcv_replay.bench.fuzz import plain_copy
+
+    data = plain_copy(path)  # no CRCs: the edit below is not caught as damage
+    assert data.count(b'"x_m":0.5') == 1
+    data = data.replace(b'"x_m":0.5', b'"x_m":9e9')
+    bad = tmp_path / "absurd.mcap"
+    bad.write_bytes(data)
+    _assert_cli_error(bad, "/loop_candidates candidate (4, 1)", "T_match_query", "out of range")
+    with pytest.raises(RecorderError, match="out of range"):
+        with LogWriter(tmp_path / "w.mcap", dataset="d", recorder="t", nominal_rate_hz=10, recorder_config={}) as w:
+            w.write_frame(0, 0, odom=Pose2D(2e8, 0.0, 0.0))
 
 
 def test_timestamps_going_backwards(tmp_path):
@@ -256,3 +279,106 @@ def test_real_process_exit_code_and_no_traceback(tmp_path):
     assert proc.returncode == 2
     assert proc.stdout == ""
     assert proc.stderr.strip() == f"error: {path}: not an MCAP file (no MCAP magic bytes at the start) (pass a log written by 'lcv-replay record' (or any MCAP file))"
+
+
+# -- damage that the container must name precisely (issue 12) ----------------------------------------
+def _message_index_records(path: Path, topic: str):
+    """``(file offset, channel id, entries)`` of each message-index record of ``topic``."""
+    import struct
+
+    container = load_container(path)
+    data = path.read_bytes()
+    ids = set(container.topic_channels(topic))
+    for chunk in container.chunks:
+        pos = chunk.file_offset + 9 + chunk.record_length
+        while data[pos] == 0x07:
+            (length,) = struct.unpack_from("<Q", data, pos + 1)
+            channel_id, records_len = struct.unpack_from("<HI", data, pos + 9)
+            if channel_id in ids:
+                yield pos, channel_id, records_len // 16
+            pos += 9 + length
+
+
+def test_appended_bytes_are_not_called_truncated(tmp_path):
+    good = tmp_path / "good.mcap"
+    write_synthetic_log(good, frames=6)
+    size = good.stat().st_size
+    bad = tmp_path / "appended.mcap"
+    bad.write_bytes(good.read_bytes() + b"\x00garbage" * 40)
+    line = _assert_cli_error(bad, f"320 bytes of unexpected data follow the end of the MCAP at byte {size}", f"truncate -s {size}")
+    assert "truncated at" not in line
+    result = runner.invoke(app, ["info", str(bad), "--recover", "--json"])
+    assert result.exit_code == 0, result.output
+    with open_log(bad, recover=True) as reader:
+        assert reader.info.frames == 6
+
+
+def test_damaged_closing_magic_is_named(tmp_path):
+    good = tmp_path / "good.mcap"
+    write_synthetic_log(good, frames=4)
+    data = bytearray(good.read_bytes())
+    data[-3] ^= 0x10
+    bad = tmp_path / "magic.mcap"
+    bad.write_bytes(bytes(data))
+    _assert_cli_error(bad, f"the closing magic bytes at byte {len(data) - 8} are damaged")
+
+
+def test_a_damaged_message_index_is_not_called_timestamps_going_backwards(tmp_path):
+    good = tmp_path / "good.mcap"
+    write_synthetic_log(good, frames=12, images=False, compression="none")
+    offset, _channel, count = next(_message_index_records(good, fmt.ODOM_TOPIC))
+    assert count >= 3
+    data = bytearray(good.read_bytes())
+    first = offset + 9 + 6 + 16  # entry 1's log_time; swap it with entry 2's (both inside the chunk's range)
+    data[first : first + 8], data[first + 16 : first + 24] = data[first + 16 : first + 24], data[first : first + 8]
+    bad = tmp_path / "index.mcap"
+    bad.write_bytes(bytes(data))
+    line = _assert_cli_error(bad, "the message index of the chunk at byte", "is damaged", "--recover, which rebuilds it")
+    assert "backwards" not in line
+    result = runner.invoke(app, ["info", str(bad), "--recover"])
+    assert result.exit_code == 0, result.output
+    with open_log(bad, recover=True) as reader, open_log(good) as reference:
+        np.testing.assert_array_equal(reader.odometry(), reference.odometry())
+
+
+def test_a_message_index_entry_outside_its_chunk_names_the_record(tmp_path):
+    good = tmp_path / "good.mcap"
+    write_synthetic_log(good, frames=12, images=False)
+    offset, _channel, _count = next(_message_index_records(good, fmt.ODOM_TOPIC))
+    data = bytearray(good.read_bytes())
+    data[offset + 9 + 6 + 7] ^= 0x40  # the high byte of entry 0's log_time
+    bad = tmp_path / "index.mcap"
+    bad.write_bytes(bytes(data))
+    _assert_cli_error(bad, f"the message index record at byte {offset} is damaged", "outside the time range")
+
+
+def test_damaged_metadata_names_the_record_and_its_offset(tmp_path):
+    """The issue's reproduction: metadata records carry no CRC (byte 54 lies in the first one)."""
+    good = tmp_path / "good.mcap"
+    write_synthetic_log(good, frames=4)
+    data = bytearray(good.read_bytes())
+    data[54] = 0xFF
+    bad = tmp_path / "meta.mcap"
+    bad.write_bytes(bytes(data))
+    _assert_cli_error(bad, "the metadata record at byte 41 is damaged", "not valid UTF-8")
+
+
+def test_the_data_section_crc_catches_damage_no_other_check_sees(tmp_path):
+    good = tmp_path / "good.mcap"
+    write_synthetic_log(good, frames=4)
+    data = bytearray(good.read_bytes())
+    at = data.index(b"synthetic-test")  # the dataset name in the 'lcv' metadata: still valid UTF-8 when changed
+    data[at] = ord("S")
+    bad = tmp_path / "meta.mcap"
+    bad.write_bytes(bytes(data))
+    assert runner.invoke(app, ["info", str(bad), "--no-check"]).exit_code == 0
+    _assert_cli_error(bad, "the data section", "fails its CRC check", "outside the chunks")
+
+
+def test_recover_that_salvages_nothing_says_so(tmp_path):
+    good = tmp_path / "good.mcap"
+    write_synthetic_log(good, frames=4)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(good.read_bytes()[:200])
+    line = _assert_cli_error(cut, "--recover salvaged nothing", "the metadata record at byte 41", args=("--recover",))
+    assert "recorder produced no frames" not in line

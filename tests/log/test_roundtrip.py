@@ -122,7 +122,7 @@ def test_planar_pose_projection_of_a_tilted_3d_orientation():
 def test_real_kitti_stereo_pair_round_trips_losslessly(tmp_path):
     import cv2
 
-    from tests.conftest import shared_path
+    from tests.shared_data import shared_path
 
     folder = shared_path("kitti06_frames")
     left = cv2.imread(str(folder / "kitti06-12.png"), cv2.IMREAD_GRAYSCALE)

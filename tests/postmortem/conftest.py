@@ -10,7 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from lcv_replay.cli import app
-from tests.conftest import shared_path
+from tests.shared_data import shared_path
 from tests.replay.helpers import FAST_CONFIG_TOML, record_square_route, write_config
 
 

@@ -13,40 +13,9 @@ from typer.testing import CliRunner
 from lcv_replay.cli import app
 from lcv_replay.errors import RecorderError
 from lcv_replay.log.reader import open_log
-from recorders.common import interpolate_planar, project_to_planar, read_image
+from recorders.common import interpolate_planar, read_image
 from recorders.folder import FolderOptions, read_planar_csv, record_folder
-from tests.recorders.trees import KITTI06_CX, KITTI06_CY, KITTI06_FX, KITTI06_FX_BASELINE, KITTI06_FRAMES
-from tests.conftest import shared_path
-
-EPOCH_NS = 1_317_000_000_000_000_000
-
-
-def build_folder_tree(root: Path, *, named_by_stamp: bool) -> dict:
-    """left/ right/ odometry.csv ground_truth.csv calibration.yaml from kitti06_frames.
-
-    Left images are the 5 real left frames; right images reuse the only real right image (frame
-    12) as a stand-in for every frame. Odometry = the real ground truth projected to planar.
-    """
-    src = shared_path("kitti06_frames")
-    times = np.loadtxt(src / "times.txt")[list(KITTI06_FRAMES)]
-    poses = np.loadtxt(src / "06.txt")[list(KITTI06_FRAMES)]
-    T = np.tile(np.eye(4), (len(poses), 1, 1))
-    T[:, :3, :] = poses.reshape(-1, 3, 4)
-    planar = project_to_planar(T)
-    stamps = EPOCH_NS + np.rint(times * 1e9).astype(np.int64)
-    (root / "left").mkdir(parents=True)
-    (root / "right").mkdir()
-    for k, frame in enumerate(KITTI06_FRAMES):
-        name = f"{stamps[k]}.png" if named_by_stamp else f"{k:06d}.png"
-        shutil.copyfile(src / f"kitti06-{frame:02d}.png", root / "left" / name)
-        shutil.copyfile(src / "kitti06-12-R.png", root / "right" / name)
-    rows = "timestamp_ns,x_m,y_m,yaw_rad\n" + "".join(f"{s},{float(x)!r},{float(y)!r},{float(t)!r}\n" for s, (x, y, t) in zip(stamps, planar))
-    (root / "odometry.csv").write_text(rows)
-    (root / "calibration.yaml").write_text(
-        f"fx: {KITTI06_FX}\nfy: {KITTI06_FX}\ncx: {KITTI06_CX}\ncy: {KITTI06_CY}\nbaseline_m: {KITTI06_FX_BASELINE / KITTI06_FX}\n"
-    )
-    return {"stamps_ns": stamps, "planar": planar, "left": [src / f"kitti06-{f:02d}.png" for f in KITTI06_FRAMES]}
-
+from tests.recorders.trees import KITTI06_CX, KITTI06_CY, KITTI06_FX, KITTI06_FX_BASELINE, build_folder_tree
 
 @pytest.mark.parametrize("named_by_stamp", [True, False])
 def test_folder_round_trip(tmp_path: Path, named_by_stamp: bool) -> None:

@@ -21,7 +21,7 @@ from recorders.g2o import (
     load_true_loops,
     prepare_g2o,
 )
-from tests.conftest import SHARED_DATA, shared_path
+from tests.shared_data import SHARED_DATA, shared_path
 
 ROBUSTSLAM_GRAPHS = sorted(SHARED_DATA.glob("robustslam_kitti/*/*.g2o"))
 VERTIGO_GRAPHS = sorted(p for p in SHARED_DATA.glob("vertigo/**/*") if p.suffix in (".g2o", ".dat"))
@@ -259,3 +259,61 @@ def test_ground_truth_and_label_mismatches(tmp_path: Path) -> None:
         load_true_loops(labels, 4)
     labels.write_text("0 3\n2 0\n")
     assert load_true_loops(labels, 4) == {(3, 0), (2, 0)}
+
+
+# -- warnings, not silence (issue 12) -------------------------------------------------------------------
+_WARNED_GRAPH = """\
+VERTEX_SE2 0 0 0 0
+VERTEX_SE2 1 1 0 0
+VERTEX_SE2 2 2 0 0
+VERTEX_SE2 3 3 0 0
+VERTEX_SE2 4 4 0 0
+EDGE_SE2 0 1 1 0 0 0 0 0 0 0 0
+EDGE_SE2 1 2 1 0 0 100 0 0 100 0 100
+EDGE_SE2 2 3 1 0 0 100 0 0 100 0 100
+EDGE_SE2 3 4 1 0 0 100 0 0 -100 0 100
+EDGE_SE2 4 0 -4 0 0 100 0 0 100 0 100
+EDGE_SE2 4 0 -4 0 0 100 0 0 100 0 100
+EDGE_SE2 0 4 4 0 0 100 0 0 100 0 100
+"""
+
+
+def test_singular_odometry_information_and_duplicate_edges_are_warned_and_counted(tmp_path: Path, caplog) -> None:
+    graph_path = tmp_path / "warned.g2o"
+    graph_path.write_text(_WARNED_GRAPH)
+    with caplog.at_level("WARNING"):
+        rec = prepare_g2o(graph_path)
+    assert rec.graph.warnings() == {"singular_odometry_information": 2, "duplicate_edges": 2}
+    text = caplog.text
+    assert "2 odometry edges have a singular or non-positive-definite information matrix (first: line 6" in text
+    assert "2 duplicate edges join the same two vertices as an earlier edge (first: line 11 repeats line 10)" in text
+    # The log's odometry information is the first usable one (edge 1 -> 2), not edge 0's zeros.
+    np.testing.assert_array_equal(rec.graph.odometry_information_matrix(), np.diag([100.0, 100.0, 100.0]))
+    assert len(rec.candidates) == 3  # duplicates are kept, each as its own candidate
+
+
+def test_a_clean_graph_has_no_warnings(caplog) -> None:
+    with caplog.at_level("WARNING"):
+        rec = prepare_g2o(shared_path("robustslam_kitti/06/kitti_06_alpha_0.50.g2o"), G2oOptions())
+    assert rec.graph.warnings() == {}
+    assert "recorders.g2o" not in caplog.text
+
+
+def test_warnings_reach_the_record_summary_and_info(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from lcv_replay.cli import app
+    from lcv_replay.log.inspect import info_to_json
+    from lcv_replay.log.reader import open_log
+
+    graph_path = tmp_path / "warned.g2o"
+    graph_path.write_text(_WARNED_GRAPH)
+    out = tmp_path / "warned.mcap"
+    result = CliRunner().invoke(app, ["record", "g2o", str(graph_path), "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "warnings: 2 duplicate edges" in result.stdout and "2 odometry edges with a singular" in result.stdout
+    with open_log(out) as reader:
+        assert reader.info.recorder_warnings == {"duplicate_edges": 2, "singular_odometry_information": 2}
+        assert info_to_json(reader.info)["recorder_warnings"] == {"duplicate_edges": 2, "singular_odometry_information": 2}
+    info = CliRunner().invoke(app, ["info", str(out)])
+    assert "Warnings:          2 duplicate edges" in info.stdout

@@ -12,7 +12,7 @@ from lcv_replay.cli import app
 from lcv_replay.errors import OutputError
 from lcv_replay.log.reader import open_log
 from recorders.g2o import G2oOptions, load_g2o, load_ground_truth, record_g2o
-from tests.conftest import shared_path
+from tests.shared_data import shared_path
 
 
 def assert_poses_equal(actual: np.ndarray, expected: np.ndarray, atol: float = 1e-9) -> None:

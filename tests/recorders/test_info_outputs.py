@@ -9,8 +9,8 @@ import pytest
 from typer.testing import CliRunner
 
 from lcv_replay.cli import app
-from tests.conftest import shared_path
-from tests.recorders.test_folder import build_folder_tree
+from tests.shared_data import shared_path
+from tests.recorders.trees import build_folder_tree
 from tests.recorders.trees import build_euroc_tree, build_kitti_tree
 
 

@@ -19,7 +19,7 @@ from lcv_replay.cli import app
 from lcv_replay.log.reader import open_log
 from recorders.common import read_image
 from recorders.rosbag import RosbagOptions, image_to_array, record_rosbag
-from tests.conftest import shared_path
+from tests.shared_data import shared_path
 from tests.recorders.trees import KITTI06_CX, KITTI06_CY, KITTI06_FX, KITTI06_FX_BASELINE
 
 SEP = "\n" + "=" * 80 + "\n"

@@ -1,13 +1,8 @@
-"""`lcv-replay LOG.mcap`: bad input gets one ``error:`` line and exit code 2; Ctrl-C stops cleanly."""
+"""`lcv-replay LOG.mcap`: bad input gets one ``error:`` line and exit code 2 (signals: tests/test_signals.py)."""
 
 from __future__ import annotations
 
 import json
-import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -124,29 +119,6 @@ def test_replay_writes_the_default_rrd_next_to_the_log_and_prints_the_summary(sq
     assert json.loads((folder / "cli.json").read_text())["frames"] == 200
 
 
-def test_sigint_mid_replay_finalises_the_recording_and_the_summary(square, tmp_path):
-    _, log, config = square
-    rrd, js = tmp_path / "int.rrd", tmp_path / "int.json"
-    proc = subprocess.Popen(
-        [sys.executable, "-c", "from lcv_replay.cli import main; main()", str(log), "--rate", "2", "--quiet", "--config", str(config),
-         "--save", str(rrd), "--summary-json", str(js)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[2],
-    )
-    deadline = time.monotonic() + 60
-    while not list(tmp_path.glob(".int.rrd.*.tmp")) and time.monotonic() < deadline and proc.poll() is None:
-        time.sleep(0.1)
-    time.sleep(2.0)  # 200 frames at 2x real time take 10 s: stop after ~2 s
-    proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130, err
-    summary = json.loads(js.read_text())
-    assert summary["interrupted"] is True and 0 < summary["frames"] < 200
-    assert "INTERRUPTED" in out and "Traceback" not in err
-    verify = subprocess.run(["rerun", "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=120)
-    assert verify.returncode == 0, verify.stdout + verify.stderr
-    assert not list(tmp_path.glob(".int.rrd.*"))
-
-
 def test_the_oracle_on_a_log_without_truth_is_refused_before_the_first_frame(square, tmp_path):
     from recorders.g2o import G2oOptions, record_g2o
 
@@ -156,3 +128,25 @@ def test_the_oracle_on_a_log_without_truth_is_refused_before_the_first_frame(squ
     code, out = _cli([str(log), "--method", "oracle", "-c", str(config), "--no-rerun", "--quiet"])
     _assert_one_line_error(code, out, "no_truth.mcap", "method 'oracle' needs the log's true loops", "--true-loops")
     assert "accepted" not in out  # refused up front: no summary
+
+
+def test_an_existing_output_is_refused_without_force_and_replaced_with_it(square, tmp_path):
+    _, log, config = square
+    out = tmp_path / "kept.rrd"
+    out.write_bytes(b"an earlier recording")
+    code, text = _cli([str(log), "-c", str(config), "--save", str(out), "--quiet"])
+    _assert_one_line_error(code, text, "kept.rrd", "already exists", "--force")
+    assert out.read_bytes() == b"an earlier recording"  # refused before the replay touched anything
+    code, text = _cli([str(log), "-c", str(config), "--save", str(out), "--quiet", "-f"])
+    assert code == 0, text
+    assert out.stat().st_size > 1000 and out.read_bytes()[:4] != b"an e"
+
+
+def test_the_default_recording_beside_the_log_is_replaced_by_each_run(square, tmp_path):
+    """Only files the user names need --force: replaying twice into the default LOG.rrd works."""
+    _, log, config = square
+    default = log.with_suffix(".rrd")
+    for _ in range(2):
+        code, text = _cli([str(log), "-c", str(config), "--quiet"])
+        assert code == 0, text
+        assert default.stat().st_size > 1000

@@ -11,7 +11,7 @@ from lcv_replay.replay import ReplayOptions, replay
 from lcv_replay.sinks import blueprint as bp
 from lcv_replay.sinks.config import RerunOutputs
 from lcv_replay.sinks.rerun_sink import RerunSink
-from tests.conftest import shared_path
+from tests.shared_data import shared_path
 from tests.replay.helpers import read_rrd, write_config
 
 

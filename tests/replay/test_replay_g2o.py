@@ -8,7 +8,6 @@ run gives an equal .rrd (``rerun rrd compare``) and an equal summary.
 
 from __future__ import annotations
 
-import json
 import math
 import subprocess
 from pathlib import Path

@@ -133,7 +133,7 @@ def test_replaying_the_bag_directly_equals_replaying_the_log(world, tmp_path: Pa
 
     # Again: the cached conversion is used, not rebuilt.
     before = cached[0].stat().st_mtime_ns
-    result = runner.invoke(app, [a for a in args if a != "--quiet"] + ["--no-rerun"])
+    result = runner.invoke(app, [a for a in args if a != "--quiet"] + ["--no-rerun", "--force"])  # bag.json exists
     assert result.exit_code == 0, result.output
     assert f"using the conversion of {bag}: {cached[0]}" in result.output and cached[0].stat().st_mtime_ns == before
     # Another option is another conversion; --keep-converted writes it beside the bag.

@@ -21,7 +21,7 @@ from lcv_replay.sinks import blueprint as bp
 from lcv_replay.sinks.config import RerunOutputs
 from lcv_replay.sinks.rerun_sink import RerunSink
 from lcv_replay.sinks.summary import SummarySink
-from tests.replay.helpers import column, last_row, read_rrd, write_config
+from tests.replay.helpers import last_row, read_rrd, write_config
 
 FRAMES = 120
 SEED = 3
@@ -84,9 +84,9 @@ def test_image_route_logs_camera_and_retrieval(demo_cache, tmp_path):
         assert path in tables, path
     assert tables[bp.CAMERA_LEFT].column("frame").to_pylist() == list(range(0, FRAMES, 10))
     queries = [f for f in tables[bp.RETRIEVAL_CODE].column("frame").to_pylist() if f is not None]
-    assert min(queries) == 30  # warm-up: max(Δt, N_b + 1) = 30 frames, then every frame queries
+    assert min(queries) == 30  # warm-up: Δt = 30 frames, then every frame queries
     code = last_row(tables[bp.RETRIEVAL_CODE], "Image:buffer")[0]
-    assert len(code) == 20 and set(code) <= {0, 255}
+    assert len(code) == 24 and set(code) <= {0, 255}  # ranked codes: 30 warm-up frames span 29 PCA axes, 24 bits
     # The last query's table and distance series agree; L2 distances sorted (best first).
     row = [v for v in last_row(tables[bp.RETRIEVAL_DISTANCES], "Scalars:scalars") if v == v]  # drop NaN
     assert row == sorted(row) and 1 <= len(row) <= 5
@@ -96,6 +96,10 @@ def test_image_route_logs_camera_and_retrieval(demo_cache, tmp_path):
     assert len(last_row(lines, "LineStrips2D:strips")) == len(last_row(lines, "match_frame")) == len(row)
     data = json.loads(js.read_text())
     assert data["constraints"] == summary.constraints and data["constraint_source"] == "images"
+    # recall both ways: against the candidates proposed, and against every ground-truth revisit
+    # (this short drive does not come back to a place more than Δt frames later: no revisit to close)
+    assert data["revisits"] == data["revisits_proposed"] == data["revisits_closed"] == 0 and data["revisit_recall"] is None
+    assert summary.revisits == 0
 
 
 def test_demo_command_replays_the_cached_recording(demo_cache, tmp_path):
@@ -107,6 +111,7 @@ def test_demo_command_replays_the_cached_recording(demo_cache, tmp_path):
     assert result.exit_code == 0, result.output
     assert log.stat().st_mtime_ns == before
     assert f"rerun {rrd}" in result.output and "lcv-replay summary" in result.output
+    assert "revisit recall" in result.output  # recall both ways in the demo's summary
     data = json.loads(js.read_text())
     assert data["frames"] == FRAMES and data["constraint_source"] == "images" and data["log"] == str(log)
     assert data["config"]["retrieval"]["backend"] == "efficientnet-lite0"  # the defaults

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from lcv_replay.retrieval.config import RetrievalConfig
-from tests.conftest import shared_path
+from tests.retrieval.helpers import DESCRIPTOR_CACHE_DIRS
+from tests.shared_data import shared_path
 
 CORRIDOR = ("rtabmap_corridor",)
 
@@ -71,5 +72,3 @@ def corridor_descriptors(lite0_backend, corridor_log, tmp_path_factory) -> np.nd
     DESCRIPTOR_CACHE_DIRS[corridor_log] = cache_dir
     return np.stack([d for _, d in rows])
 
-
-DESCRIPTOR_CACHE_DIRS: dict[Path, Path] = {}

@@ -1,8 +1,14 @@
-"""Small synthetic inputs for the retrieval tests."""
+"""Small synthetic inputs and shared state of the retrieval tests."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+
+#: The descriptor cache folder of each log described by the session fixture ``corridor_descriptors``
+#: (filled by tests/retrieval/conftest.py; a test that reuses the cache reads it here).
+DESCRIPTOR_CACHE_DIRS: dict[Path, Path] = {}
 
 
 def revisit_descriptors(*, first_pass: int, revisits: int, dim: int = 64, noise: float = 0.05, seed: int = 0) -> tuple[np.ndarray, dict[int, int]]:

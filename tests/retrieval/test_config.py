@@ -22,9 +22,32 @@ def test_retrieval_keys_load_from_toml(tmp_path):
     ("gem_p = 0.5", "retrieval.gem_p"),
     ("input_size_px = 230", "retrieval.input_size_px"),
     ("hamming_treshold = 2", "did you mean 'hamming_threshold'"),
+    ('mode = "fast"', "retrieval.mode"),
+    ('engine = "tensorrt"', "retrieval.engine"),
+    ("[retrieval.ranked]\ncandidates = 5", r"retrieval.ranked.candidates' = 5 .*>= retrieval.top_k \(10\)"),
+    ("top_k = 20\n[retrieval.ranked]\ncandidates = 19", "retrieval.ranked.candidates' = 19"),
+    ("[retrieval.ranked]\ncode_bits = 60", r"retrieval.ranked.code_bits' = 60 .*multiple of 8"),
+    ("[retrieval.ranked]\ncode_bits = 256", "retrieval.ranked.code_bits' = 256"),
+    ("pca_dims = 32\n[retrieval.ranked]\ncode_bits = 64", r"retrieval.ranked.code_bits' = 64 .*pca_dims \(32\)"),
+    ("code_bits = 65", "retrieval.code_bits"),
+    ('[retrieval.ranked]\nindex = "hnsw"', "retrieval.ranked.index"),
+    ("[retrieval.ranked]\ncandidate = 100", "did you mean 'candidates'"),
 ])
 def test_bad_retrieval_values_are_refused(tmp_path, line, message):
+    """Each bad value is refused by its dotted name (M < N_r, code bits out of range, unknown mode...)."""
     path = tmp_path / "c.toml"
     path.write_text(f"[retrieval]\n{line}\n")
     with pytest.raises(ConfigError, match=message):
         load_config(path)
+
+
+def test_modes_load_and_direct_construction_is_checked_too():
+    from lcv_replay.retrieval.config import RetrievalConfig
+
+    assert RetrievalConfig().mode == "ranked" and RetrievalConfig().active_code_bits == 128
+    assert RetrievalConfig(mode="paper").active_code_bits == 20
+    assert RetrievalConfig(mode="paper").resolved_engine == "torch" and RetrievalConfig().resolved_engine == "onnxruntime"
+    # the ranked section is only checked where it is used: a paper config may keep a small PCA
+    assert RetrievalConfig(mode="paper", pca_dims=32, code_bits=20).pca_dims == 32
+    with pytest.raises(ConfigError, match="retrieval.mode"):
+        RetrievalConfig(mode="fast")

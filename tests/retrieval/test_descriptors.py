@@ -84,6 +84,7 @@ def test_adapter_converts_and_warns_once_per_kind(caplog):
     ("efficientnet_lite_pytorch", "efficientnet-lite-pytorch"),
 ])
 def test_missing_model_package_names_the_package(monkeypatch, module, package):
+    """The torch engine needs both packages (ONNX Runtime needs them only to export, once)."""
     monkeypatch.setitem(sys.modules, module, None)  # makes "import module" raise ImportError
     with pytest.raises(RetrievalError, match=f"pip install {package}"):
-        make_backend("efficientnet-lite0", RetrievalConfig())
+        make_backend("efficientnet-lite0", RetrievalConfig(engine="torch"))

@@ -92,18 +92,23 @@ def test_default_pooling_matches_its_definition(lite0_backend, reference, corrid
 
 # Measured on rtabmap_corridor (84 images, Δt = 20, whole-set fit, seed 0): recall@1 = recall@10 =
 # 0.773 through the prefilter, 0.977 exhaustive; 'avg' pooling: 0.705. Floors leave ~1 query of slack.
-RECALL_FLOOR = 0.72
 EXHAUSTIVE_RECALL_FLOOR = 0.93
+# measured (whole-set fit, seed 0): paper R@1 = R@10 = 0.773, precision 0.740 (about one frame passes
+# its prefilter per query); ranked R@1 0.977, R@10 1.000, precision 0.279 (N_r = 10 candidates for
+# queries with one to three true matches)
+FLOORS = {"paper": (0.72, 0.72, 0.6), "ranked": (0.95, 0.97, 0.25)}
 
 
-def test_corridor_recall_does_not_regress(corridor, corridor_descriptors):
+@pytest.mark.parametrize("mode", sorted(FLOORS))
+def test_corridor_recall_does_not_regress(corridor, corridor_descriptors, mode):
     _, truth, _ = corridor
-    config = RetrievalConfig(exclusion_frames=20)
+    config = RetrievalConfig(exclusion_frames=20, mode=mode)
     candidates, prefilter = retrieve_all(corridor_descriptors, config)
     scores = score_candidates(candidates, truth, exclusion_frames=20, top_k=10)
     assert scores.queries == 44
-    assert scores.recall_at_1 >= RECALL_FLOOR and scores.recall_at_k >= RECALL_FLOOR
-    assert scores.candidate_precision >= 0.6
+    recall_1, recall_10, precision = FLOORS[mode]
+    assert scores.recall_at_1 >= recall_1 and scores.recall_at_k >= recall_10
+    assert scores.candidate_precision >= precision
     exhaustive = exhaustive_candidates(corridor_descriptors, exclusion_frames=20, top_k=10)
     top1 = score_candidates({q: v[:1] for q, v in exhaustive.items()}, truth, exclusion_frames=20, top_k=1)
     assert top1.recall_at_1 >= EXHAUSTIVE_RECALL_FLOOR

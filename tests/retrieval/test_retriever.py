@@ -12,7 +12,7 @@ from lcv_replay.retrieval.config import RetrievalConfig
 from lcv_replay.retrieval.retriever import Retriever
 from tests.retrieval.helpers import revisit_descriptors
 
-CONFIG = RetrievalConfig(exclusion_frames=30, code_bits=12, hamming_threshold=3, pca_dims=32, top_k=5)
+CONFIG = RetrievalConfig(mode="paper", exclusion_frames=30, code_bits=12, hamming_threshold=3, pca_dims=32, top_k=5)
 
 
 def _run(retriever: Retriever, descriptors: np.ndarray):

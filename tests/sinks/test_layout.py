@@ -158,11 +158,13 @@ def test_markdown_tables_name_ranks_and_constraints():
     text = hypotheses_markdown(keyed, constraints, top=10, key_name="TLS key")
     assert "| rank | TLS key | hypothesis |" in text and "| 1 | 40.2 | #7 |" in text  # the key that ranks, shown
     table = retrieval_markdown(50, [3, 9], [0.1, 0.25], [1, 2], admitted={9})
-    assert "| 2 | 9 | 0.2500 | 2 | yes |" in table and "| 1 | 3 | 0.1000 | 1 | no |" in table
+    assert "| 2 | 9 | 0.2500 | 2 | — | yes |" in table and "| 1 | 3 | 0.1000 | 1 | — | no |" in table
+    table = retrieval_markdown(50, [3, 9], [0.1, 0.25], [1, 2], admitted={9}, similarity=[0.91, None])
+    assert "| 1 | 3 | 0.1000 | 1 | 0.910 | no |" in table and "| 2 | 9 | 0.2500 | 2 | — | yes |" in table
     assert flatten({"a": {"b": 1, "c": {"d": 2}}, "e": 3}) == {"a.b": 1, "a.c.d": 2, "e": 3}
 
 
-@pytest.mark.parametrize("bits", [1, 20, 64])
+@pytest.mark.parametrize("bits", [1, 20, 64, 128])
 def test_code_bits_msb_first(bits):
     from lcv_replay.retrieval.stage import code_bits_msb_first
 

@@ -39,6 +39,14 @@ EXPECTED_VIEWS = {
 }
 
 
+@pytest.fixture(autouse=True)
+def _private_viewer_state(tmp_path, monkeypatch):
+    """The viewer persists blueprints per application id under $XDG_DATA_HOME/rerun, and restores
+    them on the next start: give each spawned viewer its own folder, so that a blueprint saved by an
+    earlier viewer run on this machine (another checkout's layout) never replaces ours."""
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "xdg-data"))
+
+
 def _vulkan_available() -> bool:
     return bool(glob.glob("/usr/share/vulkan/icd.d/*.json") or glob.glob("/etc/vulkan/icd.d/*.json"))
 

@@ -15,9 +15,9 @@ from lcv_replay.verification.base import ConstraintHistory, needs_truth
 from lcv_replay.verification.baselines import IR_ONLY_COUNTS
 from lcv_replay.verification.config import BaselineConfig, VerificationConfig
 from lcv_replay.verification.registry import available_methods, make_verifier
-from tests.conftest import shared_path
+from tests.shared_data import shared_path
 from tests.verification.ilv_synthetic import ODOM_INFORMATION, circle_world
-from tests.verification.test_incremental import candidates_by_query, feed_frames
+from tests.verification.helpers import candidates_by_query, feed_frames
 
 BASELINES = ("none", "ir-only", "dcs", "gm", "cauchy", "gnc", "oracle")
 

@@ -14,7 +14,7 @@ from lcv_replay.verification.consensus import ConsensusVerifier, Fate
 from lcv_replay.se2 import between as se2_between, compose as se2_compose
 from lcv_replay.verification.registry import make_verifier
 from tests.verification.ilv_synthetic import ODOM_INFORMATION, circle_world
-from tests.verification.test_incremental import candidates_by_query, feed_frames
+from tests.verification.helpers import candidates_by_query, feed_frames
 
 MEASURED = (100.0, 0.0, 0.0, 100.0, 0.0, 10000.0)  # sigma 10 cm, 10 cm, 0.01 rad
 CONFIG = VerificationConfig(window_frames=100)

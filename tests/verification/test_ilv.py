@@ -12,9 +12,9 @@ from lcv_replay.verification.config import VerificationConfig
 from lcv_replay import se2
 from lcv_replay.verification.base import Constraint
 from lcv_replay.verification.registry import available_methods, make_verifier
-from tests.conftest import shared_path
+from tests.shared_data import shared_path
 from tests.verification.ilv_synthetic import ODOM_INFORMATION, circle_world
-from tests.verification.test_incremental import SMALL, candidates_by_query, feed, feed_frames
+from tests.verification.helpers import SMALL, candidates_by_query, feed, feed_frames
 
 #: A measured loop (relative pose from geometric verification): sigma 10 cm, 10 cm, 0.01 rad.
 MEASURED_INFORMATION = (100.0, 0.0, 0.0, 100.0, 0.0, 10000.0)

@@ -9,42 +9,12 @@ import pytest
 
 from lcv_replay.errors import VerificationError
 from lcv_replay.records import LoopCandidate, Pose2D
-from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.ilv import PaperModel
 from lcv_replay.verification.incremental import IncrementalVerifier
 from lcv_replay.verification.pose_graph import OptimisationFailed
 from lcv_replay.verification.registry import make_verifier
+from tests.verification.helpers import SMALL, feed
 from tests.verification.ilv_synthetic import ODOM_INFORMATION, circle_world
-
-SMALL = VerificationConfig(window_frames=100, iterations_per_window=3, hypotheses_per_iteration=3, max_hypotheses=8)
-
-
-def candidates_by_query(candidates) -> dict[int, list[LoopCandidate]]:
-    """Candidates keyed by their query frame (the frame at which they arrive)."""
-    by_query: dict[int, list[LoopCandidate]] = {}
-    for c in candidates:
-        by_query.setdefault(c.query_frame, []).append(c)
-    return by_query
-
-
-def feed_frames(verifier, odom, by_frame: dict[int, list[LoopCandidate]]):
-    """Feed odometry poses frame by frame, with ``by_frame[k]`` added at frame ``k``; returns the steps."""
-    steps = []
-    for k, pose in enumerate(odom):
-        verifier.add_frame(k, Pose2D(*pose))
-        verifier.add_candidates(by_frame.get(k, []))
-        step = verifier.step()
-        if step is not None:
-            steps.append(step)
-    return steps
-
-
-def feed(verifier, world, *, extra: dict[int, list[LoopCandidate]] | None = None):
-    """Feed ``world`` frame by frame; returns the steps."""
-    by_query = candidates_by_query(world.candidates)
-    for k, extra_list in (extra or {}).items():
-        by_query.setdefault(k, []).extend(extra_list)
-    return feed_frames(verifier, world.odom, by_query)
 
 
 @pytest.fixture(scope="module")

@@ -13,9 +13,9 @@ from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.noise_scale import MAX_DOF, calibrated_gate, fit_noise
 from lcv_replay import se2
 from lcv_replay.verification.registry import make_verifier
-from tests.conftest import shared_path
+from tests.shared_data import shared_path
 from tests.verification.ilv_synthetic import circle_world
-from tests.verification.test_incremental import SMALL, candidates_by_query, feed, feed_frames
+from tests.verification.helpers import SMALL, candidates_by_query, feed, feed_frames
 
 CHI2_3_Q999 = 16.266  # chi-square quantile, 3 dof, 0.999
 

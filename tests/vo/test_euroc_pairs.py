@@ -14,7 +14,7 @@ import pytest
 from lcv_replay.records import StereoCalibration
 from lcv_replay.vo import stereo_vo as sv
 from lcv_replay.vo.config import VoConfig
-from tests.conftest import shared_path
+from tests.shared_data import shared_path
 
 
 def _sensor(name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -16,7 +16,7 @@ from lcv_replay.errors import OdometryError
 from lcv_replay.records import StereoCalibration
 from lcv_replay.vo import stereo_vo as sv
 from lcv_replay.vo.config import VoConfig
-from tests.conftest import shared_path
+from tests.shared_data import shared_path
 
 # KITTI odometry calibration of sequences 04-12 (shared/data/README.md).
 KITTI_04_12 = StereoCalibration(
