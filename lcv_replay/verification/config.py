@@ -52,7 +52,7 @@ class IlvPlusConfig:
     gate_chi2: float = 11.34  # chi-square gate on one loop's innovation until calibrated (3 dof, 0.99; GTSAM GNC-TLS default inlier threshold); a cluster of k loops gets the same confidence at 3k dof
     min_loop_gap_frames: int = 0  # drop candidates closer in time (retrieval already excludes Δt, sec. II-B)
     calibrate_gate: bool = True  # calibrate the loops' noise and the gate to what the data show (verification.noise_scale); gate_chi2 holds until then
-    calibration_min_loops: int = 30  # statistics needed before a sample is fitted (pairwise cycles, innovations)
+    calibration_min_loops: int = 30  # statistics needed before a sample is fitted; a sample from fewer clusters (their cycles count once) may widen the gate, not tighten it, nor re-weight the loops
     calibration_sample_loops: int = 2000  # at most this many of the latest statistics are fitted
     calibrated_max_chi2: float = 16.27  # a heavy-tailed fit may widen the gate up to this (3 dof, 0.999), or to its scale's Gaussian quantile if larger
     calibration_confidence: float = 0.9999  # the calibrated gate is this quantile of the fitted statistic (of 2,000 true loops, 0.2 expected beyond it)

@@ -210,7 +210,7 @@ class ConsensusVerifier(WindowedVerifier):
             self._window_end(final=True)
         step = self._last_step
         assert step is not None
-        trajectory = self.graph.estimate().copy()
+        trajectory = self._declared_solution()
         constraints = tuple(self.history.constraints)
         paper: tuple[int, ...] = ()
         if constraints:
@@ -227,6 +227,28 @@ class ConsensusVerifier(WindowedVerifier):
             ambiguous_constraint_ids=step.ambiguous_constraint_ids,
         )
         return self._result
+
+    def _declared_solution(self) -> np.ndarray:
+        """The trajectory reported at the end: the odometry and the accepted loops solved under
+        the log's declared noise (Levenberg-Marquardt from the working solution), as the oracle,
+        the baselines and the user's own back end (``accepted.g2o`` of ``--export``) solve them.
+        The noise scales fitted on the way re-weight the loops for the decisions; they are a
+        verification device, not a claim about the log (measured: on Manhattan they moved the
+        estimate from 0.91 to 0.97 m ATE, on generated worlds with mis-declared noise from 0.135
+        to 0.106 m, with the same loops)."""
+        x = self.graph.estimate().copy()
+        if self.loop_scale == 1.0 and self.odometry_scale == 1.0:
+            return x
+        n = len(x)
+        accepted = self._ids(Fate.ACCEPTED)
+        loops = [LoopFactor(int(self._m[c]), int(self._q[c]), self._z[c], self._info[c]) for c in accepted]
+        try:
+            graph = pose_graph.build_graph(self.chain.poses[:n], self.chain.information, (), loop_default_information=self.history.loop_default_information)
+            pose_graph.add_loop_factors(graph, loops)
+            return pose_graph.optimise_lm(graph, x, max_iterations=self.config.max_iterations).poses
+        except OptimisationFailed as exc:
+            log.warning("ilv+: the final solution under the declared noise failed (%s); reporting the working solution", exc.message)
+            return x
 
     # ------------------------------------------------------------------ the window end
     def _window_end(self, *, final: bool = False) -> VerifierStep:
@@ -1140,7 +1162,7 @@ class ConsensusVerifier(WindowedVerifier):
     #: A fitted scale is applied to the graph when it differs from the applied one by more than this factor.
     SCALE_CHANGE = 1.5
 
-    def _fit_scales(self, index: np.ndarray) -> None:
+    def _fit_scales(self, index: np.ndarray, *, independent: int) -> None:
         """Fit the variance components of the loops and of the odometry to banked cycles and,
         if they moved, apply them to the graph (:meth:`_apply_scales`).
 
@@ -1153,7 +1175,7 @@ class ConsensusVerifier(WindowedVerifier):
         generated world's ``misdeclared`` noise declares the two off by different factors;
         ringCity's loops are exact while its odometry is noisy)."""
         index = np.asarray(index, dtype=np.int64)
-        if len(index) < self.plus.calibration_min_loops or len(index) < 1.25 * self._scales_fitted_on:
+        if min(len(index), independent) < self.plus.calibration_min_loops or len(index) < 1.25 * self._scales_fitted_on:
             return  # refitted when the cycles have grown by a quarter
         self._scales_fitted_on = len(index)
         if len(index) > self.plus.calibration_sample_loops:
@@ -1238,16 +1260,18 @@ class ConsensusVerifier(WindowedVerifier):
 
         accepted_clusters = {int(c) for c in np.unique(self._cluster_of[self._ids(Fate.ACCEPTED)]) if c >= 0}
         accepted_clusters |= {c.id for c in candidates}
-        index = [self.clusters[c].pairs for c in sorted(accepted_clusters)]
-        index = np.concatenate(index) if index else np.zeros(0, dtype=np.int64)
-        self._fit_scales(index)
+        banked = [self.clusters[c].pairs for c in sorted(accepted_clusters) if len(self.clusters[c].pairs)]
+        index = np.concatenate(banked) if banked else np.zeros(0, dtype=np.int64)
+        # the cycles of one cluster share its loops and one stretch of odometry: as evidence they
+        # count once, not as many (a long run of loops would otherwise calibrate alone)
+        self._fit_scales(index, independent=len(banked))
         pairs = self.pair_d2(index)
         innovations = np.zeros(0)
         if self.innovations:
             k, delta = np.array(self.innovations, dtype=np.float64).T
             innovations = delta * special.chdtri(3, 0.5) / special.chdtri(3 * k, 0.5)
         gates = {}
-        for name, sample in (("pairs", pairs), ("innovations", innovations)):
+        for name, sample, independent in (("pairs", pairs, len(banked)), ("innovations", innovations, len(innovations))):
             sample = sample[np.isfinite(sample) & (sample > 0)]
             if len(sample) < self.plus.calibration_min_loops:
                 continue
@@ -1255,7 +1279,14 @@ class ConsensusVerifier(WindowedVerifier):
                 sample = sample[-self.plus.calibration_sample_loops :]
             fit = fit_noise_quantiles(sample)
             gaussian = fit.scale * float(special.chdtri(3, 1.0 - self.plus.calibration_confidence))
-            gates[name] = (min(fit.quantile(self.plus.calibration_confidence), max(self.plus.calibrated_max_chi2, gaussian)), fit)
+            gate = min(fit.quantile(self.plus.calibration_confidence), max(self.plus.calibrated_max_chi2, gaussian))
+            if independent < self.plus.calibration_min_loops:
+                # the cycles of a few clusters show a spread that is real, but a tail too thin to
+                # trust: they may widen the gate, not tighten it below the prior (measured:
+                # KITTI 02 at alpha 1.00 fitted 4.2 on the cycles of three revisits, and refused
+                # 13 of its 41 true loops, which GNC-TLS and the oracle accept)
+                gate = max(gate, self.plus.gate_chi2)
+            gates[name] = (gate, fit)
         if not gates:
             return
         if "pairs" in gates:
