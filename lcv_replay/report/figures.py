@@ -9,6 +9,7 @@ gives the same bytes.
 from __future__ import annotations
 
 import math
+import textwrap
 from typing import Sequence
 
 import numpy as np
@@ -318,7 +319,8 @@ def tree_figure(record: RunRecord) -> bytes | None:
     truth = {l.constraint_id: l.truth for l in record.loops}
     depth = max(x for x, _ in positions.values()) + 1
     height = max(y for _, y in positions.values()) + 1
-    fig = _figure(min(2.0 + 1.6 * depth, 16.0), min(1.5 + 0.34 * height, 14.0))
+    width_in = min(max(2.0 + 1.6 * depth, 6.0), 16.0)
+    fig = _figure(width_in, min(max(1.5 + 0.34 * height, 2.5), 14.0))
     ax = fig.subplots()
     rank = {h.id: h.rank for h in record.ranking}
     for node, parent in parents.items():
@@ -336,10 +338,14 @@ def tree_figure(record: RunRecord) -> bytes | None:
         face = ESTIMATE if r == 1 else "#bcd7ff" if r is not None else "white"
         ax.plot([x], [y], "o", ms=5, mfc=face, mec="black", mew=0.6)
         ax.text(x, y + 0.18, f"H{node}" + (f" #{r}" if r is not None else ""), fontsize=6.5, ha="center", va="top")
-    ax.invert_yaxis()
+    # limits that hold every label (a one-row tree would otherwise get a hair-thin y range, its
+    # labels far outside it, and constrained layout would collapse the axes)
+    ax.set_xlim(-0.5, depth - 0.5)
+    ax.set_ylim(height - 0.5, -0.6)
     ax.set_axis_off()
-    ax.set_title("Generation graph of the final top hypotheses (left: root; edge: the constraints each child added, "
-                 "single-child stretches folded; red: a false constraint entered the lineage)", fontsize=8.5)
+    title = ("Generation graph of the final top hypotheses (left: root; edge: the constraints each child added, "
+             "single-child stretches folded; red: a false constraint entered the lineage)")
+    ax.set_title("\n".join(textwrap.wrap(title, width=int(13 * width_in))), fontsize=8.5)  # a narrow tree keeps its title
     return _png(fig)
 
 
