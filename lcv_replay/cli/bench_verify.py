@@ -213,9 +213,10 @@ def bench_scale_command(
     seed: int = typer.Option(0, "--world-seed", help="Seed of the worlds and their outliers."),
     method: str = typer.Option("ilv+", "--method", "-m", help="The incremental method measured."),
     reference: list[str] = typer.Option(["gnc", "dcs"], "--reference", "-r", help="Methods timed side by side (repeatable)."),
-    config: Optional[Path] = typer.Option(None, "--config", help="TOML config; its [verification] section is used."),
+    config: Optional[Path] = config_option("its [verification] section is used"),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the report as JSON."),
     workdir: Optional[Path] = typer.Option(None, "--workdir", help="Where the worlds and logs are built and reused (default ~/.cache/lcv-replay/suite)."),
+    force: bool = force_option("the JSON report"),
 ) -> None:
     from lcv_replay.bench.scale import markdown_totals, markdown_windows, run_scale, scale_cases
     from lcv_replay.bench.suite import default_workdir
@@ -232,7 +233,7 @@ def bench_scale_command(
     verification = _load_verification_config(config)
     for name in (method, *reference):
         make_verifier(name, verification)
-    _check_json_output(json_out)
+    check_outputs(json_out, force=force)
     cases = scale_cases(lengths, layout=layout, noise=noise, mode=mode, outliers_per_1000=outliers_per_1000, seed=seed)
 
     def on_run(run) -> None:

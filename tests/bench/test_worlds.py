@@ -131,3 +131,28 @@ def test_a_world_case_builds_once_into_the_work_folder(tmp_path):
     inputs = load_inputs(first.path)
     assert inputs.frames == 500 and inputs.ground_truth is not None and inputs.true_pairs
     assert len(inputs.candidates) == len(inputs.true_pairs) + 20
+
+
+def test_bench_scale_prints_both_tables_and_writes_json(tmp_path):
+    """``lcv-replay bench scale`` end to end on two small worlds: the totals side by side, the time
+    per window against the history, and the JSON with every window."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from lcv_replay.cli import app
+
+    out = tmp_path / "scale.json"
+    args = ["bench", "scale", "--poses", "600,1200", "--outliers-per-1000", "50", "-m", "ilv+", "-r", "dcs", "--workdir", str(tmp_path / "work"), "--json", str(out)]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "ilv+" in result.output and "dcs" in result.output
+    report = json.loads(out.read_text())
+    runs = {(r["case"], r["method"]) for r in report["runs"]}
+    assert len(runs) == 4
+    for run in report["runs"]:
+        if run["method"] == "ilv+":
+            assert run["windows"] and all(w["time_s"] >= 0 for w in run["windows"])
+            assert [w["history_constraints"] for w in run["windows"]] == sorted(w["history_constraints"] for w in run["windows"])
+    again = CliRunner().invoke(app, args)
+    assert again.exit_code == 2 and "--force" in again.output  # the one overwrite rule
