@@ -115,6 +115,9 @@ def _recorder_inputs(case: SuiteCase, data_dir: Path, workdir: Path | None = Non
         seed=case.seed,
         loop_measurements=case.loop_measurements,
         original_loops_true=True if case.world is not None else None,  # a world's revisits are all true
+        # in a world that revisits its places densely, a random pair can be a real revisit: its
+        # outliers keep out of the revisit radius (a world's unlabelled revisits are not false loops)
+        outlier_min_distance_m=case.world.revisit_radius_m if case.world is not None else 0.0,
         dataset=f"world/{case.world.name}" if case.world is not None else None,
     )
     return graph, options
@@ -124,11 +127,11 @@ def case_log_name(case: SuiteCase, data_dir: Path) -> str:
     """``<case>-<hash>.mcap``: the hash covers the sources (size, mtime) and recorder options, or
     a generated world's spec and generator version."""
     from lcv_replay import __version__
-    from lcv_replay.bench.worlds import WORLD_VERSION
+    from lcv_replay.bench.worlds import WORLD_OUTLIERS_VERSION, WORLD_VERSION
     from lcv_replay.log.format import FORMAT_VERSION
 
     if case.world is not None:
-        sources: list = [("world", WORLD_VERSION)]
+        sources: list = [("world", WORLD_VERSION, "outliers", WORLD_OUTLIERS_VERSION)]
     else:
         graph, options = _recorder_inputs(case, data_dir)
         paths = [p for p in (graph, options.ground_truth, options.true_loops) if p is not None]

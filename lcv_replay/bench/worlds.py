@@ -60,6 +60,9 @@ ALL_NOISE_MODELS: tuple[str, ...] = NOISE_MODELS + ("anisotropic",)
 
 #: Bumped whenever the generator's output for a given spec changes (part of the suite's log cache key).
 WORLD_VERSION = 1
+#: Version of how a world's outliers are injected (in the suite's log names, not in the world's
+#: seed): 2 keeps them out of the revisit radius (version 1 labelled some real revisits false).
+WORLD_OUTLIERS_VERSION = 2
 
 #: Degrees of freedom of the ``heavy`` noise model's Student-t.
 HEAVY_DOF = 3.0
