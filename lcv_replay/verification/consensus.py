@@ -46,7 +46,11 @@ What ``ilv+`` does now, at every window end (and in :meth:`ConsensusVerifier.res
 6. **Calibration**, before anything is decided: the loops are re-weighted against the odometry
    (two variance components fitted to the pairwise cycles, applied where they describe them) and
    the gate is the larger of two robust fits (:mod:`~lcv_replay.verification.noise_scale`): of the
-   pairwise cycles, and of the innovations of the clusters accepted by a solve.
+   pairwise cycles, and of the innovations of the clusters accepted by a solve. The cycles of one
+   cluster count once as evidence: from fewer than 30 clusters they may widen the gate, not
+   tighten it, nor re-weight the loops.
+
+The trajectory reported at the end is solved under the log's declared noise, as the oracle's.
 
 A small cluster beyond every accepted loop, the only hold on the free end of the trajectory where
 any loop fits, waits one window for support; at the end of the log it is decided, and clusters
@@ -1173,7 +1177,8 @@ class ConsensusVerifier(WindowedVerifier):
         prior towards equal scales (when the cycles cannot tell them apart), on a grid in
         log-space, coarse then fine. Their ratio re-weights the loops against the odometry (a
         generated world's ``misdeclared`` noise declares the two off by different factors;
-        ringCity's loops are exact while its odometry is noisy)."""
+        ringCity's loops are exact while its odometry is noisy). ``independent`` is the number of
+        clusters the cycles come from: fewer than ``calibration_min_loops`` re-weight nothing."""
         index = np.asarray(index, dtype=np.int64)
         if min(len(index), independent) < self.plus.calibration_min_loops or len(index) < 1.25 * self._scales_fitted_on:
             return  # refitted when the cycles have grown by a quarter
