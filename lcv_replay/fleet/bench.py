@@ -72,7 +72,7 @@ def _per_log(state) -> list[dict[str, Any]]:
         s = entry.summary or {}
         rrd = state.spec.out_dir(entry.log) / "recording.rrd"
         out.append({
-            "name": entry.log.name, "status": entry.status, "task_s": entry.seconds, "cpu_s": entry.cpu_s, "replay_s": s.get("wall_time_s"),
+            "name": entry.log.name, "path": str(entry.log.path), "status": entry.status, "task_s": entry.seconds, "cpu_s": entry.cpu_s, "replay_s": s.get("wall_time_s"),
             "setup_s": s.get("setup_time_s"), "frames": s.get("frames"), "log_duration_s": s.get("log_duration_s"),
             "log_bytes": entry.log.path.stat().st_size, "rrd_bytes": rrd.stat().st_size if rrd.exists() else None,
             "false_positives": s.get("false_positives"), "recall": s.get("recall"),
@@ -282,7 +282,14 @@ def run(*, data_dir: Path, workdir: Path, out: Path, sequences: Sequence[str], a
     probe = session_parallelism()
     note(f"this session's parallelism: {probe['parallelism']:.2f} (2 busy processes against 1)")
     scaling = measure_scaling(logs, options, workers, repeats, out, note)
-    smallest = min(logs, key=lambda p: p.stat().st_size)
+    # the overhead probe replays the smallest log that replayed (a log the replay refuses, e.g.
+    # KITTI 07 at alpha 1.00 with no candidate at all, is a failed row of the batch, not a probe)
+    replayed = {x["path"] for r in scaling for x in r["logs"] if x["status"] == "ok"}
+    if not replayed:
+        from lcv_replay.errors import FleetError
+
+        raise FleetError("no log of the benchmark replayed, so Ray's overheads cannot be measured", fix="see the failed rows above")
+    smallest = min((p for p in logs if str(p) in replayed), key=lambda p: p.stat().st_size)
     overheads = measure_overheads(smallest, options, out, tasks=20, note=note)
     images = measure_images(image_frames, workdir, out, options, note) if image_frames else None
     walls: dict[int, list[float]] = {}
