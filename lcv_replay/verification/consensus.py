@@ -83,7 +83,7 @@ from lcv_replay.verification.base import (
     default_informations,
 )
 from lcv_replay.verification.config import VerificationConfig
-from lcv_replay.verification.consistency import Cycles, connected_labels, mahalanobis_d2, neighbour_pairs, position_consistent
+from lcv_replay.verification.consistency import Cycles, connected_labels, mahalanobis_d2, neighbour_pairs
 from lcv_replay.verification.incremental import WindowedVerifier
 from lcv_replay.verification.noise_scale import NoiseFit, fit_noise_quantiles
 from lcv_replay.verification.measurements import OdometryChain, odometry_between
@@ -214,23 +214,7 @@ class ConsensusVerifier(WindowedVerifier):
             self._window_end(final=True)
         step = self._last_step
         assert step is not None
-        trajectory = self._declared_solution()
-        constraints = tuple(self.history.constraints)
-        paper: tuple[int, ...] = ()
-        if constraints:
-            ok = position_consistent(trajectory[self._q], trajectory[self._m], self.config.consistency_radius_m)
-            paper = tuple(int(i) for i in np.flatnonzero(ok))
-        self._result = VerificationResult(
-            method=self.name,
-            constraints=constraints,
-            accepted_constraint_ids=step.accepted_constraint_ids,
-            trajectory=trajectory,
-            ranking=step.ranking,
-            paper_consistent_ids=paper,
-            last_step=step,
-            ambiguous_constraint_ids=step.ambiguous_constraint_ids,
-        )
-        return self._result
+        return self._finish(step, self._declared_solution())
 
     def _declared_solution(self) -> np.ndarray:
         """The trajectory reported at the end: the odometry and the accepted loops solved under

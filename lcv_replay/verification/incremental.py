@@ -165,6 +165,28 @@ class WindowedVerifier:
     def _window_end(self) -> VerifierStep:
         raise NotImplementedError
 
+    def _finish(self, step: VerifierStep, trajectory: np.ndarray) -> VerificationResult:
+        """The result of the last ``step`` with the final ``trajectory`` (kept: ``result()`` is
+        idempotent); the paper's consistent set is judged on that trajectory."""
+        constraints = tuple(self.history.constraints)
+        paper: tuple[int, ...] = ()
+        if constraints:
+            q = np.array([c.query_frame for c in constraints])
+            m = np.array([c.match_frame for c in constraints])
+            ok = position_consistent(trajectory[q], trajectory[m], self.config.consistency_radius_m)
+            paper = tuple(int(i) for i in np.flatnonzero(ok))
+        self._result = VerificationResult(
+            method=self.name,
+            constraints=constraints,
+            accepted_constraint_ids=step.accepted_constraint_ids,
+            trajectory=trajectory,
+            ranking=step.ranking,
+            paper_consistent_ids=paper,
+            last_step=step,
+            ambiguous_constraint_ids=step.ambiguous_constraint_ids,
+        )
+        return self._result
+
 
 class IncrementalVerifier(WindowedVerifier):
     """Multi-model hypothesize-and-verify, fed frame by frame (the ``Verifier`` protocol).
@@ -223,19 +245,7 @@ class IncrementalVerifier(WindowedVerifier):
         step = self._last_step
         assert step is not None  # a window end ran above or earlier
         top = self.hypotheses[step.ranking[0].id]
-        trajectory = self.model.final_trajectory(top, step.accepted_constraint_ids)
-        constraints = tuple(self.history.constraints)
-        paper = self._paper_consistent(trajectory, constraints)
-        self._result = VerificationResult(
-            method=self.name,
-            constraints=constraints,
-            accepted_constraint_ids=step.accepted_constraint_ids,
-            trajectory=trajectory,
-            ranking=step.ranking,
-            paper_consistent_ids=paper,
-            last_step=step,
-        )
-        return self._result
+        return self._finish(step, self.model.final_trajectory(top, step.accepted_constraint_ids))
 
     # ------------------------------------------------------------------ the schedule
     def ranked_ids(self) -> list[int]:
@@ -415,10 +425,3 @@ class IncrementalVerifier(WindowedVerifier):
             rank_key=float(self.model.rank_key(h, score, self.table.support(hypothesis_id))),
         )
 
-    def _paper_consistent(self, trajectory: np.ndarray, constraints: Sequence[Constraint]) -> tuple[int, ...]:
-        if not constraints:
-            return ()
-        q = np.array([c.query_frame for c in constraints])
-        m = np.array([c.match_frame for c in constraints])
-        ok = position_consistent(trajectory[q], trajectory[m], self.config.consistency_radius_m)
-        return tuple(int(i) for i in np.flatnonzero(ok))
