@@ -39,39 +39,40 @@ class BaselineConfig:
 
 @dataclass(frozen=True)
 class IlvPlusConfig:
-    """Parameters of ``ilv+`` (lcv_replay.verification.consensus), the improved verifier; not in
-    the paper.
+    """Parameters of ``ilv+`` (lcv_replay.verification.ilv), the improved verifier; not in the paper.
 
-    ``ilv+`` verifies clusters of pairwise-consistent loops against an iSAM2 working hypothesis
-    (the innovation of each cluster, the rise of the chi-square when it is added), contests
-    conflicting clusters by the truncated-least-squares cost and flags the undecided ones as
-    ambiguous. Its gate is calibrated to the noise the data show (``calibrate_gate``;
-    verification.noise_scale).
+    ``ilv+`` keeps the paper's incremental multi-hypothesis structure and replaces its 10 m test by
+    a Mahalanobis test under the uncertainty of each hypothesis' pose graph (GTSAM marginals),
+    ranks by the truncated-least-squares cost, and refines each drawn hypothesis to its consensus
+    set (innovation tests to join, leave-one-out tests to leave). Its gate is calibrated to the
+    noise the best hypothesis' loops show (``calibrate_gate``; verification.noise_scale).
     """
 
-    gate_chi2: float = 11.34  # chi-square gate on one loop's innovation until calibrated (3 dof, 0.99; GTSAM GNC-TLS default inlier threshold); a cluster of k loops gets the same confidence at 3k dof
+    gate_chi2: float = 11.34  # chi-square gate (3 dof, 0.99; GTSAM GNC-TLS default inlier threshold)
+    explore_chi2: float = 113.4  # sequential selection never draws a constraint with innovation beyond 10 x gate (a cheap bound screens those out)
     min_loop_gap_frames: int = 0  # drop candidates closer in time (retrieval already excludes Δt, sec. II-B)
-    calibrate_gate: bool = True  # calibrate the loops' noise and the gate to what the data show (verification.noise_scale); gate_chi2 holds until then
-    calibration_min_loops: int = 30  # statistics needed before a sample is fitted; a sample from fewer clusters (their cycles count once) may widen the gate, not tighten it, nor re-weight the loops
-    calibration_sample_loops: int = 2000  # at most this many of the latest statistics are fitted
-    calibrated_max_chi2: float = 16.27  # a heavy-tailed fit may widen the gate up to this (3 dof, 0.999), or to its scale's Gaussian quantile if larger
+    closure_rounds: int = 2  # consensus refinement rounds per drawn hypothesis (0 = the paper's child)
+    iterations_per_window: int = 3  # sec. II-D uses 10 x 10; consensus refinement needs far fewer children
+    hypotheses_per_iteration: int = 5
+    max_hypotheses: int = 50  # kept hypotheses (the paper's bound is 200); each costs a column test per window
+    calibrate_gate: bool = True  # calibrate the gate to the noise the best hypothesis' loops show (verification.noise_scale); gate_chi2 holds until then
+    calibration_min_loops: int = 30  # loops the best hypothesis needs before its noise is fitted
+    calibration_sample_loops: int = 2000  # at most this many of its loops (evenly spaced) are fitted per window (all 2,000 of Manhattan: 0.6 s)
+    calibrated_max_chi2: float = 16.27  # a heavy-tailed fit may widen the gate up to this (3 dof, 0.999), never further
     calibration_confidence: float = 0.9999  # the calibrated gate is this quantile of the fitted statistic (of 2,000 true loops, 0.2 expected beyond it)
-    cluster_span_frames: int = 10  # loops whose query and match frames both lie within this many frames are tested pairwise and clustered
-    ambiguity_margin: float = 1.0  # a contest within this many gates of truncated cost is undecided: both sides are flagged ambiguous
-    max_contests_per_window: int = 20  # alternative hypotheses solved per window (bounds the cost of a window)
-    frontier_min_loops: int = 3  # a smaller cluster beyond every accepted loop waits one window for support (decided at the end of the log)
 
     def __post_init__(self) -> None:
         require(self.gate_chi2 > 0, "verification.ilv_plus.gate_chi2", self.gate_chi2, "a number > 0")
+        require(self.explore_chi2 >= self.gate_chi2, "verification.ilv_plus.explore_chi2", self.explore_chi2, "a number >= gate_chi2")
         require(self.min_loop_gap_frames >= 0, "verification.ilv_plus.min_loop_gap_frames", self.min_loop_gap_frames, "an integer >= 0")
-        require(self.calibration_min_loops >= 10, "verification.ilv_plus.calibration_min_loops", self.calibration_min_loops, "an integer >= 10")
+        require(self.closure_rounds >= 0, "verification.ilv_plus.closure_rounds", self.closure_rounds, "an integer >= 0")
+        require(self.iterations_per_window >= 1, "verification.ilv_plus.iterations_per_window", self.iterations_per_window, "an integer >= 1")
+        require(self.hypotheses_per_iteration >= 1, "verification.ilv_plus.hypotheses_per_iteration", self.hypotheses_per_iteration, "an integer >= 1")
+        require(self.max_hypotheses >= self.hypotheses_per_iteration, "verification.ilv_plus.max_hypotheses", self.max_hypotheses, "an integer >= hypotheses_per_iteration")
+        require(self.calibration_min_loops >= 2, "verification.ilv_plus.calibration_min_loops", self.calibration_min_loops, "an integer >= 2")
         require(self.calibration_sample_loops >= self.calibration_min_loops, "verification.ilv_plus.calibration_sample_loops", self.calibration_sample_loops, "an integer >= calibration_min_loops")
         require(self.calibrated_max_chi2 >= self.gate_chi2, "verification.ilv_plus.calibrated_max_chi2", self.calibrated_max_chi2, "a number >= gate_chi2")
         require(0.5 < self.calibration_confidence < 1.0, "verification.ilv_plus.calibration_confidence", self.calibration_confidence, "a number in (0.5, 1)")
-        require(self.cluster_span_frames >= 1, "verification.ilv_plus.cluster_span_frames", self.cluster_span_frames, "an integer >= 1")
-        require(self.ambiguity_margin >= 0, "verification.ilv_plus.ambiguity_margin", self.ambiguity_margin, "a number >= 0")
-        require(self.frontier_min_loops >= 1, "verification.ilv_plus.frontier_min_loops", self.frontier_min_loops, "an integer >= 1")
-        require(self.max_contests_per_window >= 0, "verification.ilv_plus.max_contests_per_window", self.max_contests_per_window, "an integer >= 0")
 
 
 @dataclass(frozen=True)

@@ -3,11 +3,16 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 from lcv_replay.records import LoopCandidate, Pose2D
 from lcv_replay.verification.config import VerificationConfig
 
 #: A small ilv/ilv+ configuration for fast tests: windows of 100 frames, few hypotheses.
 SMALL = VerificationConfig(window_frames=100, iterations_per_window=3, hypotheses_per_iteration=3, max_hypotheses=8)
+SMALL = dataclasses.replace(
+    SMALL, ilv_plus=dataclasses.replace(SMALL.ilv_plus, iterations_per_window=3, hypotheses_per_iteration=3, max_hypotheses=8)
+)
 
 
 def candidates_by_query(candidates) -> dict[int, list[LoopCandidate]]:
