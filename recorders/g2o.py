@@ -450,6 +450,8 @@ def inject_outliers(
     information: Information6 = VERTIGO_DEFAULT_INFORMATION,
     seed: int = 0,
     existing_pairs: Iterable[tuple[int, int]] = (),
+    ground_truth: np.ndarray | None = None,
+    min_distance_m: float = 0.0,
 ) -> tuple[LoopCandidate, ...]:
     """False loop closures drawn as in Sünderhauf's Vertigo ``generateDataset.py``.
 
@@ -459,6 +461,9 @@ def inject_outliers(
       is shorter when ``group_size`` does not divide ``count``).
     * A pair never joins a pose to itself or to its odometry neighbour, nor repeats a pair in
       ``existing_pairs`` or an earlier outlier (such a draw is redrawn).
+    * With ``ground_truth`` (``(N, 3)`` poses) and ``min_distance_m > 0``, a pair never joins two
+      poses closer than ``min_distance_m`` (redrawn): in a graph that revisits its places densely
+      (a grid city), a random pair can be a real revisit, and a loop there is not false.
     * Measurement ``T_match_query``: x, y ~ N(0, 0.3 m), yaw ~ N(0, 10°), with ``information``.
 
     Returns ``count`` candidates with ``source="injected"``, oriented (later, earlier).
@@ -473,6 +478,8 @@ def inject_outliers(
     last = num_poses - 1 - run  # the largest first index of a run, as in Vertigo
     if count and last < 2:
         raise RecorderError(f"a graph of {num_poses} poses is too small for {mode} outliers of runs of {run}", fix="use a larger graph or a smaller --group-size")
+    if min_distance_m > 0.0 and ground_truth is None:
+        raise RecorderError("outliers kept away from real revisits need the ground truth", fix="pass --ground-truth, or no minimum distance")
     rng = np.random.default_rng(seed)
     taken = {(max(q, m), min(q, m)) for q, m in existing_pairs}
     out: list[LoopCandidate] = []
@@ -492,6 +499,8 @@ def inject_outliers(
         pairs = [(b + k, a + k) for k in range(n)]
         if any(p in taken for p in pairs):
             continue
+        if min_distance_m > 0.0 and any(np.hypot(*(ground_truth[q, :2] - ground_truth[m, :2])) < min_distance_m for q, m in pairs):
+            continue  # a real revisit, not a false loop
         x_m, y_m = rng.normal(0.0, OUTLIER_SIGMA_XY_M, size=2)
         yaw_rad = rng.normal(0.0, OUTLIER_SIGMA_YAW_RAD)
         measurement = Pose2D(float(x_m), float(y_m), float(yaw_rad))
@@ -518,6 +527,8 @@ class G2oOptions:
         outliers: number of false loops to inject (0 = none).
         outlier_mode: ``random``, ``local`` or ``group``.
         group_size: loops per run in ``group`` mode.
+        outlier_min_distance_m: injected loops never join two poses closer than this in the ground
+            truth (0: no check; the suite's generated worlds use their revisit radius).
         outlier_information: information of injected loops; ``None`` = that of the graph's first
             loop (Vertigo protocol), or Vertigo's default ``42.7·I`` if the graph has no loop.
         seed: random seed of the injection.
@@ -543,6 +554,7 @@ class G2oOptions:
     outliers: int = 0
     outlier_mode: OutlierMode = "random"
     group_size: int = 10
+    outlier_min_distance_m: float = 0.0
     outlier_information: Information6 | None = None
     seed: int = 0
     loop_measurements: Literal["as-recorded", "same-place"] = "as-recorded"
@@ -644,6 +656,7 @@ def prepare_g2o(graph_path: str | Path, options: G2oOptions = G2oOptions()) -> G
         injected = inject_outliers(
             n, options.outliers, mode=options.outlier_mode, group_size=options.group_size,
             information=info, seed=options.seed, existing_pairs=original_pairs,
+            ground_truth=ground_truth, min_distance_m=options.outlier_min_distance_m,
         )
 
     true_loops: frozenset[tuple[int, int]] | None = None

@@ -80,14 +80,26 @@ class BuiltLog:
     build_s: float
 
 
-def _recorder_inputs(case: SuiteCase, data_dir: Path):
+def _recorder_inputs(case: SuiteCase, data_dir: Path, workdir: Path | None = None):
+    """``(graph path, G2oOptions)`` of a case; a generated world is written into
+    ``workdir/worlds`` first (when ``workdir`` is given; else only its paths are named)."""
     from recorders.g2o import G2oOptions
 
-    graph = case.resolve(data_dir, case.graph)
-    ground_truth = case.resolve(data_dir, case.ground_truth)
-    true_loops = case.resolve(data_dir, case.true_loops)
+    if case.world is not None:
+        folder = (workdir or default_workdir()) / "worlds"
+        if workdir is not None:
+            from lcv_replay.bench.worlds import generate_world, write_world
+
+            graph, ground_truth = write_world(generate_world(case.world), folder)
+        else:
+            graph, ground_truth = folder / f"{case.world.name}.g2o", folder / f"{case.world.name}_gt.g2o"
+        true_loops = None
+    else:
+        graph = case.resolve(data_dir, case.graph)
+        ground_truth = case.resolve(data_dir, case.ground_truth)
+        true_loops = case.resolve(data_dir, case.true_loops)
     for what, path in (("graph", graph), ("ground truth", ground_truth), ("true-loop labels", true_loops)):
-        if path is not None and not path.is_file():
+        if path is not None and not path.is_file() and case.world is None:
             raise RecorderError(
                 f"suite case '{case.name}': {what} file not found",
                 path=path,
@@ -102,20 +114,31 @@ def _recorder_inputs(case: SuiteCase, data_dir: Path):
         group_size=case.group_size,
         seed=case.seed,
         loop_measurements=case.loop_measurements,
+        original_loops_true=True if case.world is not None else None,  # a world's revisits are all true
+        # in a world that revisits its places densely, a random pair can be a real revisit: its
+        # outliers keep out of the revisit radius (a world's unlabelled revisits are not false loops)
+        outlier_min_distance_m=case.world.revisit_radius_m if case.world is not None else 0.0,
+        dataset=f"world/{case.world.name}" if case.world is not None else None,
     )
     return graph, options
 
 
 def case_log_name(case: SuiteCase, data_dir: Path) -> str:
-    """``<case>-<hash>.mcap``: the hash covers the sources (size, mtime) and recorder options."""
+    """``<case>-<hash>.mcap``: the hash covers the sources (size, mtime) and recorder options, or
+    a generated world's spec and generator version."""
     from lcv_replay import __version__
+    from lcv_replay.bench.worlds import WORLD_OUTLIERS_VERSION, WORLD_VERSION
     from lcv_replay.log.format import FORMAT_VERSION
 
-    graph, options = _recorder_inputs(case, data_dir)
-    sources = [p for p in (graph, options.ground_truth, options.true_loops) if p is not None]
+    if case.world is not None:
+        sources: list = [("world", WORLD_VERSION, "outliers", WORLD_OUTLIERS_VERSION)]
+    else:
+        graph, options = _recorder_inputs(case, data_dir)
+        paths = [p for p in (graph, options.ground_truth, options.true_loops) if p is not None]
+        sources = [(str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in paths]
     key = {
         "case": asdict(case),
-        "sources": [(str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in sources],
+        "sources": sources,
         "format": FORMAT_VERSION,
         "version": __version__,
     }
@@ -137,8 +160,8 @@ def build_case_log(case: SuiteCase, data_dir: Path, workdir: Path) -> BuiltLog:
             return BuiltLog(case.name, path, True, 0.0)
         except LcvError as exc:
             log.warning("rebuilding %s: %s", path, exc.format())
-    graph, options = _recorder_inputs(case, data_dir)
     started = time.perf_counter()
+    graph, options = _recorder_inputs(case, data_dir, workdir)
     record_g2o(graph, path, options, force=True)
     return BuiltLog(case.name, path, False, time.perf_counter() - started)
 
@@ -183,8 +206,9 @@ class MethodSummary:
     ``pooled_*`` are micro-averages (total TP over total accepted, over total true candidates);
     ``mean_*`` average the per-case figures.
 
-    ``precision_one_cases`` counts cases with no false positive (precision 1, or nothing accepted
-    where nothing was true); ``ate_over_oracle`` is the mean ratio of ATE to the oracle's ATE.
+    ``no_false_positive_cases`` counts cases with no false positive (precision 1, or nothing
+    accepted where nothing was true); ``ambiguous`` the loops flagged ambiguous over all cases;
+    ``ate_over_oracle`` is the mean ratio of ATE to the oracle's ATE.
     """
 
     method: str
@@ -197,6 +221,7 @@ class MethodSummary:
     mean_recall: float | None
     mean_f1: float | None
     no_false_positive_cases: int
+    ambiguous: int
     mean_ate_m: float | None
     max_ate_over_oracle: float | None
     mean_ate_over_oracle: float | None
@@ -371,6 +396,7 @@ def summarise(rows: Sequence[CaseRow], methods: Sequence[str]) -> list[MethodSum
                 mean_recall=_mean([row.recall for row in ok]),
                 mean_f1=_mean([row.f1 for row in ok]),
                 no_false_positive_cases=sum(1 for row in ok if row.false_positives == 0),
+                ambiguous=sum(row.ambiguous for row in ok),
                 mean_ate_m=_mean([row.ate_rmse_m for row in ok]),
                 max_ate_over_oracle=max(ratios) if ratios else None,
                 mean_ate_over_oracle=_mean(ratios),
@@ -390,20 +416,21 @@ def _fmt(value: float | int | None, digits: int = 2) -> str:
 
 
 def markdown_rows(rows: Sequence[CaseRow]) -> str:
-    """One line per case × method: P, R, F1 (3 decimals: 0.998 is not 1), TP/FP/FN, ATE (aligned), time."""
+    """One line per case × method: P, R, F1 (3 decimals: 0.998 is not 1), TP/FP/FN, the loops
+    flagged ambiguous (neither accepted nor rejected), ATE (aligned), time."""
     lines = [
-        "| case | method | P | R | F1 | TP | FP | FN | ATE m | time s | ×RT |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| case | method | P | R | F1 | TP | FP | FN | amb. | ATE m | time s | ×RT |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         row = r.row
         if row is None:
-            lines.append(f"| {r.case} | {r.method} | error: {r.error} |||||||||")
+            lines.append(f"| {r.case} | {r.method} | error: {r.error} ||||||||||")
             continue
         lines.append(
             f"| {r.case} | {r.method} | {_fmt(row.precision, 3)} | {_fmt(row.recall, 3)} | {_fmt(row.f1, 3)} | "
             f"{_fmt(row.true_positives)} | {_fmt(row.false_positives)} | {_fmt(row.false_negatives)} | "
-            f"{_fmt(row.ate_rmse_m)} | {_fmt(row.wall_time_s)} | {_fmt(row.realtime_factor, 0)} |"
+            f"{_fmt(row.ambiguous)} | {_fmt(row.ate_rmse_m)} | {_fmt(row.wall_time_s)} | {_fmt(row.realtime_factor, 0)} |"
         )
     return "\n".join(lines)
 
@@ -411,15 +438,15 @@ def markdown_rows(rows: Sequence[CaseRow]) -> str:
 def markdown_summary(summary: Sequence[MethodSummary]) -> str:
     """One line per method: pooled and mean figures, worst precision, ATE against the oracle, time."""
     lines = [
-        "| method | cases | P pooled | R pooled | mean P | min P | no-FP cases | mean R | mean F1 | mean ATE m | ATE/oracle mean | ATE/oracle max | time s (total) | time s (median) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| method | cases | P pooled | R pooled | mean P | min P | no-FP cases | ambiguous loops | mean R | mean F1 | mean ATE m | ATE/oracle mean | ATE/oracle max | time s (total) | time s (median) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for s in summary:
         cases = f"{s.cases}" + (f" ({s.errors} errors)" if s.errors else "")
         lines.append(
             f"| {s.method} | {cases} | {_fmt(s.pooled_precision, 3)} | {_fmt(s.pooled_recall, 3)} | "
             f"{_fmt(s.mean_precision, 3)} | {_fmt(s.min_precision, 3)} | "
-            f"{s.no_false_positive_cases} | {_fmt(s.mean_recall, 3)} | {_fmt(s.mean_f1, 3)} | {_fmt(s.mean_ate_m)} | "
+            f"{s.no_false_positive_cases} | {s.ambiguous} | {_fmt(s.mean_recall, 3)} | {_fmt(s.mean_f1, 3)} | {_fmt(s.mean_ate_m)} | "
             f"{_fmt(s.mean_ate_over_oracle)} | {_fmt(s.max_ate_over_oracle)} | {_fmt(s.total_time_s, 1)} | "
             f"{_fmt(s.median_time_s)} |"
         )

@@ -6,8 +6,22 @@ Built-in suites:
     ``robustslam_kitti`` sequences 00, 02, 05, 06, 07 × alphas 0.00, 0.25, 0.50, 0.75, 1.00 (with
     ground truth and true-loop labels; 25 cases) plus Vertigo Manhattan (M3500, with its ground
     truth) spoiled with 100 and 1000 false loops in random, local and group modes (6 cases).
+``vertigo``
+    The other public Vertigo 2-D benchmarks spoiled the same way: ring (100 outliers), ringCity
+    (100 and 500), Intel (100 and 200), each in random, local and group modes, and city10000
+    (10,000 poses) with 1,000 random and 1,000 grouped outliers (17 cases).
+``generated``
+    Generated worlds (:mod:`lcv_replay.bench.worlds`): grid and ring cities × Gaussian,
+    heavy-tailed and mis-declared noise × random, local and group outliers, at 1,000 poses with
+    100 outliers, 2,000 with 500 and 2,500 with 1,000 (54 cases), plus 5,000 and 10,000 poses with
+    1,000 outliers (6 cases); 60 cases, each seeded.
+``extended``
+    ``standard`` + ``vertigo`` + ``generated`` (108 cases).
 ``quick``
     A CI subset: ``robustslam_kitti`` 06 at alpha 0.50 and 07 at alpha 0.00.
+
+Every case that injects outliers or generates a world is seeded; :func:`with_seeds` redraws it
+for other seeds (``bench suite --seeds N``), one case per seed.
 
 A suite file (TOML) names its cases and optionally methods and other suites to include::
 
@@ -27,6 +41,15 @@ A suite file (TOML) names its cases and optionally methods and other suites to i
     modes = ["random", "local", "group"]
     group_size = 10
     seed = 0
+
+    [[world]]                                # generated worlds: layouts x poses x noise x modes x outliers x seeds
+    layouts = ["grid", "ring"]
+    poses = [2000]
+    noise = ["gaussian", "heavy", "misdeclared"]
+    modes = ["group"]
+    outliers = [500]
+    seeds = [0, 1]
+    group_size = 10
 
     [[case]]                                 # any 2-D pose graph
     name = "my-graph"
@@ -48,8 +71,9 @@ import difflib
 import tomllib
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Iterable, Literal
+from typing import Any, Iterable, Literal, Sequence
 
+from lcv_replay.bench.worlds import LAYOUTS, NOISE_MODELS, WorldSpec
 from lcv_replay.errors import ConfigError, require_seed
 
 LoopMeasurements = Literal["as-recorded", "same-place"]
@@ -62,11 +86,17 @@ VERTIGO_MODES = ("random", "local", "group")
 #: Methods a suite runs when it names none (those registered; ``ir-only`` at its config X).
 DEFAULT_METHODS = ("none", "ir-only", "dcs", "gm", "cauchy", "gnc", "oracle", "ilv", "ilv+")
 
-_VERTIGO_DATASETS = {
+#: Vertigo 2-D benchmarks: (graph, ground truth or ``None``) relative to the data folder. Their own
+#: loops are all true; city10000 and Intel have no ground-truth file (no ATE).
+_VERTIGO_DATASETS: dict[str, tuple[str, str | None]] = {
     "manhattan": (
         "vertigo/manhattan/originalDataset/g2o/manhattanOlson3500.g2o",
         "vertigo/manhattan/groundTruth/manhattanOlson3500_nodes_groundTruth.dat",
     ),
+    "ring": ("vertigo/ring/originalDataset/ring.g2o", "vertigo/ring/groundTruth/ring.g2o"),
+    "ringCity": ("vertigo/ringCity/originalDataset/ringCity.g2o", "vertigo/ringCity/groundTruth/ringCity.g2o"),
+    "city10000": ("vertigo/city10000/originalDataset/city10000.g2o", None),
+    "intel": ("vertigo/intel/originalDataset/intel.g2o", None),
 }
 
 
@@ -74,11 +104,14 @@ _VERTIGO_DATASETS = {
 class SuiteCase:
     """One log of a suite, built by the g2o recorder.
 
-    Paths are relative to the data folder unless absolute. ``outliers = 0`` injects none.
+    Paths are relative to the data folder unless absolute. ``outliers = 0`` injects none. A case
+    with a ``world`` has no files: the world is generated into the suite's work folder
+    (:mod:`lcv_replay.bench.worlds`), then recorded like any graph; ``seed`` seeds the outliers
+    (and ``world.seed`` the world).
     """
 
     name: str
-    graph: str
+    graph: str = ""
     ground_truth: str | None = None
     true_loops: str | None = None
     outliers: int = 0
@@ -86,6 +119,22 @@ class SuiteCase:
     group_size: int = 10
     seed: int = 0
     loop_measurements: LoopMeasurements = "as-recorded"
+    world: WorldSpec | None = None
+
+    def __post_init__(self) -> None:
+        if bool(self.graph) == (self.world is not None):
+            raise ConfigError(f"suite case '{self.name}' needs a graph file or a generated world (exactly one)")
+
+    @property
+    def seeded(self) -> bool:
+        """Whether the case depends on a seed (it injects outliers or generates a world)."""
+        return self.outliers > 0 or self.world is not None
+
+    def with_seed(self, seed: int) -> "SuiteCase":
+        """The same case drawn with another seed (world and outliers); the name ends in ``-s<seed>``."""
+        base = self.name[: -len(f"-s{self.seed}")] if self.name.endswith(f"-s{self.seed}") else self.name
+        world = replace(self.world, seed=seed) if self.world is not None else None
+        return replace(self, name=f"{base}-s{seed}", seed=seed, world=world)
 
     def resolve(self, data_dir: Path, relative: str | None) -> Path | None:
         """A case path resolved against ``data_dir``."""
@@ -145,6 +194,9 @@ def vertigo_cases(
     """A Vertigo dataset spoiled with ``outliers`` false loops in each mode (its loops labelled true)."""
     if dataset not in _VERTIGO_DATASETS:
         raise ConfigError(f"unknown vertigo dataset '{dataset}'", fix=f"use one of {', '.join(_VERTIGO_DATASETS)}")
+    outliers, modes = tuple(outliers), tuple(modes)
+    for mode in modes:
+        _check_mode(mode)
     graph, ground_truth = _VERTIGO_DATASETS[dataset]
     return tuple(
         SuiteCase(
@@ -161,11 +213,87 @@ def vertigo_cases(
     )
 
 
+def world_cases(
+    layouts: Iterable[str] = LAYOUTS,
+    poses: Iterable[int] = (2000,),
+    noise: Iterable[str] = NOISE_MODELS,
+    modes: Iterable[str] = VERTIGO_MODES,
+    outliers: Iterable[int] = (500,),
+    seeds: Iterable[int] = (0,),
+    *,
+    group_size: int = 10,
+) -> tuple[SuiteCase, ...]:
+    """Generated worlds (layouts × poses × noise) spoiled by ``outliers`` in each mode, per seed;
+    named ``<layout>-<poses>-<noise>-<mode>-<outliers>-s<seed>``."""
+    layouts, poses, noise, modes, outliers, seeds = (tuple(v) for v in (layouts, poses, noise, modes, outliers, seeds))
+    cases = []
+    for layout in layouts:
+        for n in poses:
+            for model in noise:
+                for mode in modes:
+                    _check_mode(mode)
+                    for count in outliers:
+                        for seed in seeds:
+                            world = WorldSpec(layout=layout, poses=int(n), noise=model, seed=int(seed))  # type: ignore[arg-type]
+                            size = world.name.split("-")[1]
+                            cases.append(
+                                SuiteCase(
+                                    name=f"{layout}-{size}-{model}-{mode}-{count}-s{seed}",
+                                    outliers=int(count),
+                                    outlier_mode=mode,
+                                    group_size=group_size,
+                                    seed=int(seed),
+                                    world=world,
+                                )
+                            )
+    return tuple(cases)
+
+
+def _check_mode(mode: str) -> None:
+    if mode not in VERTIGO_MODES:
+        raise ConfigError(f"unknown outlier mode '{mode}'", fix=f"use one of {', '.join(VERTIGO_MODES)}")
+
+
+def _generated_cases() -> tuple[SuiteCase, ...]:
+    """The built-in ``generated`` suite: every layout × noise × mode at three sizes (54 cases), and
+    6 larger worlds. The seeds are fixed (1 to 5; the development set used seeds 100 and up);
+    ``--seeds N`` redraws them."""
+    cases: list[SuiteCase] = []
+    for poses, count, seed in ((1000, 100, 1), (2000, 500, 2), (2500, 1000, 3)):
+        cases.extend(world_cases(poses=[poses], outliers=[count], seeds=[seed]))
+    cases.extend(world_cases(poses=[5000], noise=["gaussian", "misdeclared"], modes=["random", "group"], outliers=[1000], seeds=[4], layouts=["grid"]))
+    cases.extend(world_cases(poses=[10000], noise=["gaussian"], modes=["random"], outliers=[1000], seeds=[5], layouts=["ring"]))
+    cases.extend(world_cases(poses=[10000], noise=["heavy"], modes=["group"], outliers=[1000], seeds=[5], layouts=["ring"]))
+    return tuple(cases)
+
+
+_VERTIGO_SUITE = (
+    vertigo_cases("ring", [100])
+    + vertigo_cases("ringCity", [100, 500])
+    + vertigo_cases("intel", [100, 200])
+    + vertigo_cases("city10000", [1000], ["random", "group"])
+)
+
 BUILTIN_SUITES: dict[str, Suite] = {
     "standard": Suite(
         "standard",
         robustslam_cases() + vertigo_cases(),
         description="robustslam_kitti 00/02/05/06/07 x 5 alphas + Manhattan with 100/1000 random/local/group outliers",
+    ),
+    "vertigo": Suite(
+        "vertigo",
+        _VERTIGO_SUITE,
+        description="Vertigo ring, ringCity, Intel and city10000 with random/local/group outliers",
+    ),
+    "generated": Suite(
+        "generated",
+        _generated_cases(),
+        description="generated grid and ring cities, 1k-10k poses, Gaussian/heavy-tailed/mis-declared noise, random/local/group outliers",
+    ),
+    "extended": Suite(
+        "extended",
+        robustslam_cases() + vertigo_cases() + _VERTIGO_SUITE + _generated_cases(),
+        description="standard + vertigo + generated",
     ),
     "quick": Suite(
         "quick",
@@ -179,9 +307,10 @@ BUILTIN_SUITES: dict[str, Suite] = {
 # TOML
 # ---------------------------------------------------------------------------------------------
 
-_TOP_KEYS = {"name", "description", "methods", "include", "robustslam_kitti", "vertigo", "case"}
+_TOP_KEYS = {"name", "description", "methods", "include", "robustslam_kitti", "vertigo", "world", "case"}
 _KITTI_KEYS = {"sequences", "alphas", "loop_measurements"}
 _VERTIGO_KEYS = {"dataset", "outliers", "modes", "group_size", "seed"}
+_WORLD_KEYS = {"layouts", "poses", "noise", "modes", "outliers", "seeds", "group_size"}
 _CASE_KEYS = {"name", "graph", "ground_truth", "true_loops", "outliers", "outlier_mode", "group_size", "seed", "loop_measurements"}
 
 
@@ -265,6 +394,19 @@ def load_suite_file(path: str | Path, *, _seen: tuple[Path, ...] = ()) -> Suite:
                 seed=_seed(table.get("seed", 0), "vertigo.seed", path),
             )
         )
+    for table in _typed(data.get("world", []), list, "world", path):
+        _refuse_unknown(_typed(table, dict, "world", path), _WORLD_KEYS, "world.", path)
+        cases.extend(
+            world_cases(
+                _list_of(table, "layouts", str, path, LAYOUTS),
+                _list_of(table, "poses", int, path, (2000,)),
+                _list_of(table, "noise", str, path, NOISE_MODELS),
+                _list_of(table, "modes", str, path, VERTIGO_MODES),
+                _list_of(table, "outliers", int, path, (500,)),
+                tuple(_seed(v, "world.seeds", path) for v in _list_of(table, "seeds", int, path, (0,))),
+                group_size=_typed(table.get("group_size", 10), int, "world.group_size", path),
+            )
+        )
     for table in _typed(data.get("case", []), list, "case", path):
         _refuse_unknown(_typed(table, dict, "case", path), _CASE_KEYS, "case.", path)
         for required in ("name", "graph"):
@@ -308,6 +450,19 @@ def get_suite(name_or_path: str | Path, *, base_dir: Path | None = None, _seen: 
             fix=f"use one of {', '.join(BUILTIN_SUITES)} or a suite .toml file",
         )
     return load_suite_file(path, _seen=_seen)
+
+
+def with_seeds(suite: Suite, seeds: Sequence[int]) -> Suite:
+    """``suite`` with every seeded case (:attr:`SuiteCase.seeded`) replaced by one case per seed
+    of ``seeds`` (``bench suite --seeds N``); unseeded cases (robustslam_kitti) are kept once."""
+    cases: list[SuiteCase] = []
+    seen: set[str] = set()
+    for case in suite.cases:
+        for drawn in ([case.with_seed(int(s)) for s in seeds] if case.seeded else [case]):
+            if drawn.name not in seen:
+                seen.add(drawn.name)
+                cases.append(drawn)
+    return replace(suite, cases=tuple(cases))
 
 
 def with_methods(suite: Suite, methods: Iterable[str]) -> Suite:

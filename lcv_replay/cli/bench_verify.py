@@ -75,7 +75,9 @@ def bench_verify_command(
 )
 def bench_suite_command(
     quick: bool = typer.Option(False, "--quick", help="The CI subset (suite 'quick')."),
-    suite: Optional[str] = typer.Option(None, "--suite", help="Built-in suite name (standard, quick) or a suite TOML file."),
+    suite: Optional[str] = typer.Option(None, "--suite", help="Built-in suite name (standard, vertigo, generated, extended, quick) or a suite TOML file."),
+    seeds: Optional[int] = typer.Option(None, "--seeds", min=1, help="Redraw every seeded case (outliers injected, generated worlds) with N new seeds, one case each."),
+    first_seed: Optional[int] = typer.Option(None, "--first-seed", min=0, help="With --seeds: use seeds S..S+N-1 (default: drawn at random, printed, so the run can be repeated)."),
     method: list[str] = typer.Option([], "--method", "-m", help=_METHOD_HELP + " Default: the suite's, else none, ir-only, dcs, gm, cauchy, gnc, oracle, ilv, ilv+."),
     config: Optional[Path] = config_option("its [verification] section is used"),
     seed: Optional[int] = typer.Option(None, "--seed", help="Override verification.seed."),
@@ -105,7 +107,18 @@ def bench_suite_command(
 
     if quick and suite is not None:
         raise ConfigError("--quick and --suite are exclusive", fix="pass one of them")
+    if first_seed is not None and seeds is None:
+        raise ConfigError("--first-seed needs --seeds N", fix="pass --seeds N as well")
     chosen = get_suite("quick" if quick else (suite or "standard"))
+    if seeds is not None:
+        from lcv_replay.bench.suites import with_seeds
+
+        if first_seed is None:
+            import secrets
+
+            first_seed = 1000 + secrets.randbelow(10**6)
+        chosen = with_seeds(chosen, range(first_seed, first_seed + seeds))
+        typer.echo(f"seeds {first_seed}..{first_seed + seeds - 1} (repeat with --seeds {seeds} --first-seed {first_seed})", err=True)
     verification = _load_verification_config(config)
     _check_seed(seed)
     data_dir = resolve_data_dir(data)
@@ -181,3 +194,54 @@ def bench_suite_command(
     if errors:
         typer.echo(f"error: {len(errors)} runs failed, e.g. {errors[0].method} on {errors[0].case}: {errors[0].error}", err=True)
         raise typer.Exit(1)
+
+
+@bench_app.command(
+    "scale",
+    help=(
+        "Cost against history: generated worlds of growing length, verified by a method and by "
+        "references side by side; prints the totals and the time per window against the number of "
+        "constraints already verified, writes JSON."
+    ),
+)
+def bench_scale_command(
+    poses: str = typer.Option("1000,2000,5000,10000", "--poses", help="World lengths in poses, comma-separated."),
+    layout: str = typer.Option("grid", "--layout", help="World layout: grid or ring."),
+    noise: str = typer.Option("gaussian", "--noise", help="Noise model: gaussian, heavy or misdeclared."),
+    mode: str = typer.Option("random", "--outlier-mode", help="Outlier mode: random, local or group."),
+    outliers_per_1000: int = typer.Option(100, "--outliers-per-1000", min=0, help="Injected outliers per 1,000 poses."),
+    seed: int = typer.Option(0, "--world-seed", help="Seed of the worlds and their outliers."),
+    method: str = typer.Option("ilv+", "--method", "-m", help="The incremental method measured."),
+    reference: list[str] = typer.Option(["gnc", "dcs"], "--reference", "-r", help="Methods timed side by side (repeatable)."),
+    config: Optional[Path] = config_option("its [verification] section is used"),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the report as JSON."),
+    workdir: Optional[Path] = typer.Option(None, "--workdir", help="Where the worlds and logs are built and reused (default ~/.cache/lcv-replay/suite)."),
+    force: bool = force_option("the JSON report"),
+) -> None:
+    from lcv_replay.bench.scale import markdown_totals, markdown_windows, run_scale, scale_cases
+    from lcv_replay.bench.suite import default_workdir
+    from lcv_replay.errors import ConfigError
+    from lcv_replay.fileio import write_text_atomic
+    from lcv_replay.verification.registry import make_verifier
+
+    try:
+        lengths = [int(p) for p in poses.split(",") if p.strip()]
+    except ValueError:
+        raise ConfigError(f"--poses {poses!r} is not a list of integers", fix="pass e.g. --poses 1000,2000,5000") from None
+    if not lengths:
+        raise ConfigError("--poses names no world length", fix="pass e.g. --poses 1000,2000,5000")
+    verification = _load_verification_config(config)
+    for name in (method, *reference):
+        make_verifier(name, verification)
+    check_outputs(json_out, force=force)
+    cases = scale_cases(lengths, layout=layout, noise=noise, mode=mode, outliers_per_1000=outliers_per_1000, seed=seed)
+
+    def on_run(run) -> None:
+        typer.echo(f"{run.case} {run.method}: {run.wall_time_s:.1f} s, P {_num(run.precision)} R {_num(run.recall)}", err=True)
+
+    report = run_scale(cases, method=method, references=reference, data_dir=Path("."), workdir=workdir or default_workdir(), config=verification, on_run=on_run)
+    typer.echo(markdown_totals(report) + "\n")
+    typer.echo(markdown_windows(report))
+    if json_out is not None:
+        write_text_atomic(json_out, json.dumps(report.as_dict(), indent=2) + "\n")
+        typer.echo(f"\nwrote {json_out}")

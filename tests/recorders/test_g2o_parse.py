@@ -159,6 +159,21 @@ def test_inject_outliers_is_deterministic_and_group_remainder() -> None:
     assert len(a) == 25 and len({c.T_match_query for c in a}) == 3  # runs of 10, 10 and 5
 
 
+@pytest.mark.parametrize("mode", ["random", "local", "group"])
+def test_inject_outliers_keeps_out_of_real_revisits(mode: str) -> None:
+    """A route driven twice over the same 50 m: with the ground truth and a minimum distance, no
+    injected pair joins two poses at the same place (without it, many would)."""
+    lap = np.stack([np.arange(50.0), np.zeros(50), np.zeros(50)], axis=1)
+    truth = np.concatenate([lap, lap[::-1], lap])  # 150 poses, every place visited three times
+    near = lambda out: sum(np.hypot(*(truth[c.query_frame, :2] - truth[c.match_frame, :2])) < 1.5 for c in out)
+    kept = inject_outliers(len(truth), 20, mode=mode, seed=3, ground_truth=truth, min_distance_m=1.5)
+    assert len(kept) == 20 and near(kept) == 0
+    if mode == "random":
+        assert near(inject_outliers(len(truth), 200, mode=mode, seed=3)) > 0  # the draw the rule redraws
+    with pytest.raises(RecorderError, match="ground truth"):
+        inject_outliers(len(truth), 5, mode=mode, min_distance_m=1.5)
+
+
 def test_inject_outliers_rejects_impossible_requests() -> None:
     with pytest.raises(RecorderError, match="too small"):
         inject_outliers(5, 1, mode="group", group_size=10)

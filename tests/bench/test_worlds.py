@@ -1,0 +1,158 @@
+"""Generated pose-graph worlds (lcv_replay.bench.worlds) and their place in the suites."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lcv_replay.bench.suites import BUILTIN_SUITES, SuiteCase, load_suite_file, with_seeds, world_cases
+from lcv_replay.bench.worlds import MISDECLARED_RANGE, WorldSpec, generate_world, write_world
+from lcv_replay.errors import ConfigError
+from lcv_replay.se2 import between as se2_between, logmap as se2_logmap
+
+
+@pytest.mark.parametrize("layout", ["grid", "ring"])
+def test_a_world_is_a_pure_function_of_its_spec(layout):
+    spec = WorldSpec(layout=layout, poses=600, seed=3)
+    a, b = generate_world(spec), generate_world(spec)
+    assert np.array_equal(a.truth, b.truth) and np.array_equal(a.odometry, b.odometry) and np.array_equal(a.loops, b.loops)
+    other = generate_world(WorldSpec(layout=layout, poses=600, seed=4))
+    assert not np.array_equal(a.truth, other.truth)
+
+
+@pytest.mark.parametrize("layout", ["grid", "ring"])
+def test_worlds_drive_one_metre_steps_and_revisit_places(layout):
+    world = generate_world(WorldSpec(layout=layout, poses=1500, seed=1))
+    steps = np.linalg.norm(np.diff(world.truth[:, :2], axis=0), axis=1)
+    # one metre along the road; a step across a corner cuts it (chord of at least 1/sqrt(2))
+    assert np.all(steps <= 1.0 + 1e-9) and np.all(steps > 0.7) and np.median(steps) == pytest.approx(1.0)
+    q, m = world.loops[:, 0], world.loops[:, 1]
+    assert len(world.loops) > 0.15 * 1500
+    assert np.all(q - m >= 50)
+    assert np.all(np.linalg.norm(world.truth[q, :2] - world.truth[m, :2], axis=1) < 1.5)
+    # the measurements are the true relative poses plus loop noise (sigmas 0.1 m, 0.1 m, 0.02 rad)
+    error = se2_logmap(se2_between(se2_between(world.truth[m], world.truth[q]), world.loop_measurements))
+    assert np.all(np.abs(error[:, :2]) < 0.6) and np.all(np.abs(error[:, 2]) < 0.12)
+    # the odometry drifts away from the truth
+    assert np.linalg.norm(world.odometry[-1, :2] - world.truth[-1, :2]) > 1.0
+
+
+def test_noise_models():
+    gaussian = generate_world(WorldSpec(poses=3000, noise="gaussian", seed=2))
+    heavy = generate_world(WorldSpec(poses=3000, noise="heavy", seed=2))
+
+    def odometry_errors(world):
+        truth = se2_between(world.truth[:-1], world.truth[1:])
+        odometry = se2_between(world.odometry[:-1], world.odometry[1:])
+        return se2_logmap(se2_between(truth, odometry))[:, 0] / world.spec.odometry_sigmas[0]
+
+    g, h = odometry_errors(gaussian), odometry_errors(heavy)
+    assert 0.9 < np.std(g) < 1.1 and np.max(np.abs(g)) < 6.0  # as declared
+    assert np.max(np.abs(h)) > 10.0  # Student-t (3 dof): a tail no Gaussian has
+    assert gaussian.declared_factors == heavy.declared_factors == (1.0, 1.0)
+    np.testing.assert_allclose(np.linalg.inv(gaussian.odometry_information), np.diag(np.square(gaussian.spec.odometry_sigmas)))
+    for seed in range(5):
+        world = generate_world(WorldSpec(poses=300, noise="misdeclared", seed=seed))
+        for factor in world.declared_factors:
+            assert MISDECLARED_RANGE[0] <= factor <= MISDECLARED_RANGE[1]
+        declared = np.linalg.inv(world.odometry_information)
+        np.testing.assert_allclose(declared, world.declared_factors[0] * np.diag(np.square(world.spec.odometry_sigmas)))
+        world = generate_world(WorldSpec(poses=300, noise="anisotropic", seed=seed))
+        per_axis = np.diag(np.linalg.inv(world.loop_information)) / np.square(world.spec.loop_sigmas)
+        assert np.all((per_axis >= MISDECLARED_RANGE[0]) & (per_axis <= MISDECLARED_RANGE[1]))
+        assert np.ptp(np.log(per_axis)) > 0  # each axis off by its own factor
+
+
+def test_a_written_world_reads_back_through_the_g2o_recorder(tmp_path):
+    from recorders.g2o import load_g2o, prepare_g2o, G2oOptions
+
+    world = generate_world(WorldSpec(layout="ring", poses=400, seed=5))
+    graph_path, truth_path = write_world(world, tmp_path)
+    graph = load_g2o(graph_path)
+    assert graph.num_poses == 400 and len(graph.loops) == len(world.loops)
+    np.testing.assert_allclose(graph.odometry_poses(), world.odometry, atol=1e-6)
+    np.testing.assert_allclose(load_g2o(truth_path).trajectory(), world.truth, atol=1e-6)
+    np.testing.assert_allclose(graph.odometry_information_matrix(), world.odometry_information, rtol=1e-6)
+    # the suite's recorder labels the revisits true and injects outliers the Vertigo way
+    rec = prepare_g2o(graph_path, G2oOptions(ground_truth=truth_path, outliers=30, outlier_mode="group", seed=1))
+    assert len(rec.candidates) == len(world.loops) + 30
+    assert rec.true_loops == frozenset((int(q), int(m)) for q, m in world.loops)
+
+
+def test_world_specs_are_checked():
+    with pytest.raises(ConfigError, match="layout"):
+        WorldSpec(layout="maze")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="noise"):
+        WorldSpec(noise="pink")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="poses"):
+        WorldSpec(poses=10)
+
+
+def test_suites_of_generated_worlds_and_fresh_seeds(tmp_path):
+    generated = BUILTIN_SUITES["generated"]
+    assert len(generated.cases) >= 60 and all(c.world is not None and c.seeded for c in generated.cases)
+    assert {c.world.layout for c in generated.cases} == {"grid", "ring"}
+    assert {c.world.noise for c in generated.cases} == {"gaussian", "heavy", "misdeclared"}
+    assert {c.outlier_mode for c in generated.cases} == {"random", "local", "group"}
+    assert {c.world.poses for c in generated.cases} >= {1000, 2000, 10000}
+    names = {c.name for c in BUILTIN_SUITES["vertigo"].cases}
+    assert {"ring-group-100", "ringCity-group-500", "intel-local-200", "city10000-random-1000"} <= names
+    assert len(BUILTIN_SUITES["extended"].cases) == 31 + len(BUILTIN_SUITES["vertigo"].cases) + len(generated.cases)
+
+    redrawn = with_seeds(BUILTIN_SUITES["quick"], [7, 8])  # robustslam_kitti cases have no seed
+    assert redrawn.cases == BUILTIN_SUITES["quick"].cases
+    case = world_cases(["grid"], [1000], ["heavy"], ["group"], [100], [1])[0]
+    assert case.name == "grid-1k-heavy-group-100-s1"
+    again = with_seeds(type(generated)("x", (case,)), [7, 8]).cases
+    assert [c.name for c in again] == ["grid-1k-heavy-group-100-s7", "grid-1k-heavy-group-100-s8"]
+    assert [c.world.seed for c in again] == [7, 8] and [c.seed for c in again] == [7, 8]
+
+    path = tmp_path / "w.toml"
+    path.write_text('[[world]]\nlayouts = ["ring"]\nposes = [1500]\nnoise = ["misdeclared"]\nmodes = ["local", "group"]\noutliers = [50]\nseeds = [4]\n')
+    suite = load_suite_file(path)
+    assert [c.name for c in suite.cases] == ["ring-1500-misdeclared-local-50-s4", "ring-1500-misdeclared-group-50-s4"]
+    path.write_text('[[world]]\nlayouts = ["maze"]\n')
+    with pytest.raises(ConfigError, match="layout"):
+        load_suite_file(path)
+    with pytest.raises(ConfigError, match="exactly one"):
+        SuiteCase("both", graph="x.g2o", world=WorldSpec())
+
+
+def test_a_world_case_builds_once_into_the_work_folder(tmp_path):
+    from lcv_replay.bench.suite import build_case_log
+    from lcv_replay.bench.verify import load_inputs
+
+    case = world_cases(["grid"], [500], ["gaussian"], ["random"], [20], [3])[0]
+    first = build_case_log(case, Path("/nonexistent"), tmp_path)
+    again = build_case_log(case, Path("/nonexistent"), tmp_path)
+    assert not first.reused and again.reused
+    inputs = load_inputs(first.path)
+    assert inputs.frames == 500 and inputs.ground_truth is not None and inputs.true_pairs
+    assert len(inputs.candidates) == len(inputs.true_pairs) + 20
+
+
+def test_bench_scale_prints_both_tables_and_writes_json(tmp_path):
+    """``lcv-replay bench scale`` end to end on two small worlds: the totals side by side, the time
+    per window against the history, and the JSON with every window."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from lcv_replay.cli import app
+
+    out = tmp_path / "scale.json"
+    args = ["bench", "scale", "--poses", "600,1200", "--outliers-per-1000", "50", "-m", "ilv+", "-r", "dcs", "--workdir", str(tmp_path / "work"), "--json", str(out)]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "ilv+" in result.output and "dcs" in result.output
+    report = json.loads(out.read_text())
+    runs = {(r["case"], r["method"]) for r in report["runs"]}
+    assert len(runs) == 4
+    for run in report["runs"]:
+        if run["method"] == "ilv+":
+            assert run["windows"] and all(w["time_s"] >= 0 for w in run["windows"])
+            assert [w["history_constraints"] for w in run["windows"]] == sorted(w["history_constraints"] for w in run["windows"])
+    again = CliRunner().invoke(app, args)
+    assert again.exit_code == 2 and "--force" in again.output  # the one overwrite rule
