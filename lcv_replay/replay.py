@@ -181,6 +181,7 @@ def _prepare(options: ReplayOptions) -> _Setup:
     """Open the log, refuse what cannot be replayed, build the verifier, retrieval and truth."""
     from lcv_replay.log.reader import open_log
     from lcv_replay.retrieval.stage import RetrievalStage
+    from lcv_replay.verification.config import with_loop_kind
     from lcv_replay.verification.registry import make_verifier
 
     path = Path(options.log_path)
@@ -200,6 +201,8 @@ def _prepare(options: ReplayOptions) -> _Setup:
         options.constraints, has_images=info.has_images, has_candidates=info.has_candidates, path=path
     )
     config = options.resolved_config()
+    # ilv+ verifies our retrieval's same-place loops and a log's measured loops with different verifiers
+    config = dataclasses.replace(config, verification=with_loop_kind(config.verification, same_place=source in ("images", "both")))
     window = reader.window(options.start_offset_s, options.duration_s)
     if window.frames == 0:
         raise ReplayError(

@@ -223,11 +223,14 @@ def verify_inputs(
             singular information matrix, ...
     """
     from lcv_replay.config import to_dict
+    from lcv_replay.verification.config import with_loop_kind
     from lcv_replay.verification.registry import make_verifier
 
     config = config or VerificationConfig()
     if seed is not None:
         config = dataclasses.replace(config, seed=seed)
+    # ilv+ verifies measured loops and same-place loops with different verifiers
+    config = with_loop_kind(config, same_place=not any(c.T_match_query is not None for c in inputs.candidates))
     verifier = make_verifier(method, config, odometry_information=inputs.odometry_information)
     provide_truth(verifier, inputs.constraint_truth(config.consistency_radius_m), method=method, path=inputs.path)
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Literal
 
 from lcv_replay.errors import require, require_seed
@@ -39,29 +39,45 @@ class BaselineConfig:
 
 @dataclass(frozen=True)
 class IlvPlusConfig:
-    """Parameters of ``ilv+`` (lcv_replay.verification.ilv), the improved verifier; not in the paper.
+    """Parameters of ``ilv+``, the improved verifier; not in the paper. It is two verifiers, one
+    per kind of loop (``loops``):
 
-    ``ilv+`` keeps the paper's incremental multi-hypothesis structure and replaces its 10 m test by
-    a Mahalanobis test under the uncertainty of each hypothesis' pose graph (GTSAM marginals),
-    ranks by the truncated-least-squares cost, and refines each drawn hypothesis to its consensus
-    set (innovation tests to join, leave-one-out tests to leave). Its gate is calibrated to the
-    noise the best hypothesis' loops show (``calibrate_gate``; verification.noise_scale).
+    * **measured** loops, each with a relative pose (g2o graphs, geometric verification): the
+      cluster-consensus verifier (lcv_replay.verification.consensus) verifies clusters of
+      pairwise-consistent loops against an iSAM2 working hypothesis (the innovation of each
+      cluster), contests conflicting clusters by the truncated-least-squares cost and flags the
+      undecided ones as ambiguous;
+    * **same-place** loops, without a relative pose (our image retrieval): the hypothesis-table
+      verifier (lcv_replay.verification.ilv, ``PlusModel``) keeps the paper's incremental
+      multi-hypothesis structure with a Mahalanobis test under each hypothesis' uncertainty, ranking
+      by truncated-least-squares cost and consensus refinement.
+
+    Both calibrate their gate to the noise the data show (``calibrate_gate``;
+    verification.noise_scale).
     """
 
-    gate_chi2: float = 11.34  # chi-square gate (3 dof, 0.99; GTSAM GNC-TLS default inlier threshold)
-    explore_chi2: float = 113.4  # sequential selection never draws a constraint with innovation beyond 10 x gate (a cheap bound screens those out)
+    loops: Literal["auto", "measured", "same-place"] = "auto"  # auto: the replay decides by where the loops come from (retrieval: same-place; the log's candidates: measured), the bench by whether any carries a relative pose
+    gate_chi2: float = 11.34  # chi-square gate on one loop's innovation until calibrated (3 dof, 0.99; GTSAM GNC-TLS default inlier threshold)
     min_loop_gap_frames: int = 0  # drop candidates closer in time (retrieval already excludes Δt, sec. II-B)
+    calibrate_gate: bool = True  # calibrate the gate (and, for measured loops, the loops' weight) to the noise the data show (verification.noise_scale); gate_chi2 holds until then
+    calibration_min_loops: int = 30  # statistics needed before a fit (same-place: loops of the best hypothesis; measured: innovations, or clusters contributing pairwise cycles, which may widen the gate from fewer)
+    calibration_sample_loops: int = 2000  # at most this many statistics are fitted per window
+    calibrated_max_chi2: float = 16.27  # a heavy-tailed fit may widen the gate up to this (3 dof, 0.999); measured loops: or to the fit's Gaussian quantile if larger
+    calibration_confidence: float = 0.9999  # the calibrated gate is this quantile of the fitted statistic (of 2,000 true loops, 0.2 expected beyond it)
+    # same-place loops (the hypothesis-table verifier)
+    explore_chi2: float = 113.4  # sequential selection never draws a constraint with innovation beyond 10 x gate (a cheap bound screens those out)
     closure_rounds: int = 2  # consensus refinement rounds per drawn hypothesis (0 = the paper's child)
     iterations_per_window: int = 3  # sec. II-D uses 10 x 10; consensus refinement needs far fewer children
     hypotheses_per_iteration: int = 5
     max_hypotheses: int = 50  # kept hypotheses (the paper's bound is 200); each costs a column test per window
-    calibrate_gate: bool = True  # calibrate the gate to the noise the best hypothesis' loops show (verification.noise_scale); gate_chi2 holds until then
-    calibration_min_loops: int = 30  # loops the best hypothesis needs before its noise is fitted
-    calibration_sample_loops: int = 2000  # at most this many of its loops (evenly spaced) are fitted per window (all 2,000 of Manhattan: 0.6 s)
-    calibrated_max_chi2: float = 16.27  # a heavy-tailed fit may widen the gate up to this (3 dof, 0.999), never further
-    calibration_confidence: float = 0.9999  # the calibrated gate is this quantile of the fitted statistic (of 2,000 true loops, 0.2 expected beyond it)
+    # measured loops (the cluster-consensus verifier)
+    cluster_span_frames: int = 10  # loops whose query and match frames both lie within this many frames are tested pairwise and clustered
+    ambiguity_margin: float = 1.0  # a contest within this many gates of truncated cost is undecided: both sides are flagged ambiguous
+    max_contests_per_window: int = 20  # alternative hypotheses solved per window (bounds the cost of a window)
+    frontier_min_loops: int = 3  # a smaller cluster beyond every accepted loop waits one window for support (decided at the end of the log)
 
     def __post_init__(self) -> None:
+        require(self.loops in ("auto", "measured", "same-place"), "verification.ilv_plus.loops", self.loops, "'auto', 'measured' or 'same-place'")
         require(self.gate_chi2 > 0, "verification.ilv_plus.gate_chi2", self.gate_chi2, "a number > 0")
         require(self.explore_chi2 >= self.gate_chi2, "verification.ilv_plus.explore_chi2", self.explore_chi2, "a number >= gate_chi2")
         require(self.min_loop_gap_frames >= 0, "verification.ilv_plus.min_loop_gap_frames", self.min_loop_gap_frames, "an integer >= 0")
@@ -69,10 +85,14 @@ class IlvPlusConfig:
         require(self.iterations_per_window >= 1, "verification.ilv_plus.iterations_per_window", self.iterations_per_window, "an integer >= 1")
         require(self.hypotheses_per_iteration >= 1, "verification.ilv_plus.hypotheses_per_iteration", self.hypotheses_per_iteration, "an integer >= 1")
         require(self.max_hypotheses >= self.hypotheses_per_iteration, "verification.ilv_plus.max_hypotheses", self.max_hypotheses, "an integer >= hypotheses_per_iteration")
-        require(self.calibration_min_loops >= 2, "verification.ilv_plus.calibration_min_loops", self.calibration_min_loops, "an integer >= 2")
+        require(self.calibration_min_loops >= 10, "verification.ilv_plus.calibration_min_loops", self.calibration_min_loops, "an integer >= 10")
         require(self.calibration_sample_loops >= self.calibration_min_loops, "verification.ilv_plus.calibration_sample_loops", self.calibration_sample_loops, "an integer >= calibration_min_loops")
         require(self.calibrated_max_chi2 >= self.gate_chi2, "verification.ilv_plus.calibrated_max_chi2", self.calibrated_max_chi2, "a number >= gate_chi2")
         require(0.5 < self.calibration_confidence < 1.0, "verification.ilv_plus.calibration_confidence", self.calibration_confidence, "a number in (0.5, 1)")
+        require(self.cluster_span_frames >= 1, "verification.ilv_plus.cluster_span_frames", self.cluster_span_frames, "an integer >= 1")
+        require(self.ambiguity_margin >= 0, "verification.ilv_plus.ambiguity_margin", self.ambiguity_margin, "a number >= 0")
+        require(self.frontier_min_loops >= 1, "verification.ilv_plus.frontier_min_loops", self.frontier_min_loops, "an integer >= 1")
+        require(self.max_contests_per_window >= 0, "verification.ilv_plus.max_contests_per_window", self.max_contests_per_window, "an integer >= 0")
 
 
 @dataclass(frozen=True)
@@ -117,3 +137,11 @@ class VerificationConfig:
         import numpy as np
 
         return np.diag(1.0 / np.square(np.asarray(self.loop_sigmas, dtype=np.float64)))
+
+
+def with_loop_kind(config: VerificationConfig, *, same_place: bool) -> VerificationConfig:
+    """``config`` with ``ilv_plus.loops`` decided where it is ``auto``: ``same-place`` when the
+    loops carry no relative pose (``same_place``), else ``measured``."""
+    if config.ilv_plus.loops != "auto":
+        return config
+    return replace(config, ilv_plus=replace(config.ilv_plus, loops="same-place" if same_place else "measured"))

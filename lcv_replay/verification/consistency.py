@@ -208,3 +208,137 @@ class ConsistencyTable:
         support = np.zeros((r, c), dtype=np.float64)
         support[: self._support.shape[0], : self._support.shape[1]] = self._support
         self._support = support
+
+
+# ----------------------------------------------------------------------------------------------
+# Pairwise consistency of nearby loops (PCM's test on short cycles) and clusters (ilv+)
+# ----------------------------------------------------------------------------------------------
+
+
+def _segment(chain, a: np.ndarray, b: np.ndarray, prefix: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Odometry ``O_a⁻¹ O_b`` ``(K, 3)`` and its covariance ``(K, 3, 3)`` (right perturbation) for
+    any order of ``a`` and ``b`` (zero for ``a == b``); ``prefix`` as in
+    :meth:`~lcv_replay.verification.measurements.OdometryChain.segment_covariance`."""
+    from lcv_replay import se2
+
+    odom = chain.poses
+    rel = se2.between(odom[a], odom[b])
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    cov = np.zeros((len(a), 3, 3))
+    moving = lo < hi
+    if moving.any():
+        cov[moving] = chain.segment_covariance(lo[moving], hi[moving], prefix)
+    backwards = b < a  # O_a⁻¹ O_b = (O_b⁻¹ O_a)⁻¹: right perturbation Exp(-Ad(O_b⁻¹ O_a) ε)
+    if backwards.any():
+        ad = se2.adjoint(se2.between(odom[b[backwards]], odom[a[backwards]]))
+        cov[backwards] = ad @ cov[backwards] @ np.swapaxes(ad, -1, -2)
+    return rel, cov
+
+
+class Cycles:
+    """The short cycles ``m1 -> q1 -> q2 -> m2 -> m1`` of loop pairs (PCM, Mangelson et al. 2018),
+    closed by the odometry between their ends.
+
+    With ``Z_i = x_{m_i}⁻¹ x_{q_i}``, ``A = x_{m1}⁻¹ x_{m2}`` and ``B = x_{q1}⁻¹ x_{q2}``,
+    ``Z_2 = A⁻¹ Z_1 B`` holds exactly; its error with the measured ``Ẑ1, Ẑ2`` and odometry
+    ``Â, B̂`` is ``e = Log(Ẑ2⁻¹ Â⁻¹ Ẑ1 B̂)``, with covariance (right perturbations, first order)
+    ``Ad(B⁻¹) R1 Ad(B⁻¹)ᵀ + Ad(B⁻¹Z1⁻¹A) Σ_A Ad(·)ᵀ + Σ_B + R2``. Nothing but the two loops and the
+    odometry between their ends enters, so for nearby loops the test is tight and cheap.
+
+    Args:
+        chain: the :class:`~lcv_replay.verification.measurements.OdometryChain`.
+        match, query: ``(m1, m2)`` and ``(q1, q2)``, each ``(K,)`` frame indices.
+        measured: ``(Ẑ1, Ẑ2)``, each ``(K, 3)`` ``T_match_query``.
+    """
+
+    def __init__(self, chain, match, query, measured):
+        from lcv_replay import se2
+
+        self.chain = chain
+        self.m1, self.m2 = (np.asarray(v, dtype=np.int64) for v in match)
+        self.q1, self.q2 = (np.asarray(v, dtype=np.int64) for v in query)
+        z1, z2 = (np.asarray(v, dtype=np.float64).reshape(-1, 3) for v in measured)
+        odom = chain.poses
+        a = se2.between(odom[self.m1], odom[self.m2])
+        b = se2.between(odom[self.q1], odom[self.q2])
+        predicted = se2.compose(se2.between(a, z1), b)  # A⁻¹ Z1 B
+        self.error = se2.logmap(se2.between(z2, predicted))  # (K, 3)
+        self._ad_r1 = se2.adjoint_inverse(b)  # Ad(B⁻¹)
+        self._ad_a = se2.adjoint_inverse(predicted)  # Ad(B⁻¹ Z1⁻¹ A) = Ad((A⁻¹ Z1 B)⁻¹)
+
+    def __len__(self) -> int:
+        return len(self.error)
+
+    def covariance(self, loops: tuple[np.ndarray, np.ndarray] | None, odometry_prefix: np.ndarray | None) -> np.ndarray:
+        """``(K, 3, 3)`` covariance of the errors for loop covariances ``(R1, R2)`` (each
+        ``(K, 3, 3)``, or ``None`` for exact loops) and the odometry step covariance whose prefix
+        sums are ``odometry_prefix`` (``None``: the chain's own; see
+        :func:`~lcv_replay.verification.measurements.random_walk_prefix`). Linear in both."""
+        _, cov_a = _segment(self.chain, self.m1, self.m2, odometry_prefix)
+        _, cov_b = _segment(self.chain, self.q1, self.q2, odometry_prefix)
+        t = np.swapaxes
+        cov = self._ad_a @ cov_a @ t(self._ad_a, -1, -2) + cov_b
+        if loops is not None:
+            r1, r2 = loops
+            cov = cov + self._ad_r1 @ r1 @ t(self._ad_r1, -1, -2) + r2
+        return cov
+
+    def d2(self, loops: tuple[np.ndarray, np.ndarray], odometry_prefix: np.ndarray | None = None) -> np.ndarray:
+        """``(K,)`` ``eᵀ C⁻¹ e``: a 3-dof chi-square when both loops are true and the covariances right."""
+        if len(self) == 0:
+            return np.zeros(0)
+        return mahalanobis_d2(self.error, self.covariance(loops, odometry_prefix))
+
+
+def cycle_d2(
+    chain,
+    match: tuple[np.ndarray, np.ndarray],
+    query: tuple[np.ndarray, np.ndarray],
+    measured: tuple[np.ndarray, np.ndarray],
+    covariance: tuple[np.ndarray, np.ndarray],
+) -> np.ndarray:
+    """Pairwise consistency of loop pairs over their short cycle (:class:`Cycles`), with loop
+    covariances ``(R1, R2)`` and the chain's odometry noise: ``(K,)`` chi-square statistics."""
+    if len(np.asarray(match[0])) == 0:
+        return np.zeros(0)
+    return Cycles(chain, match, query, measured).d2(covariance)
+
+
+def neighbour_pairs(match: np.ndarray, query: np.ndarray, span_frames: int) -> np.ndarray:
+    """``(P, 2)`` index pairs ``(i, j)``, ``i < j`` in the given order, of loops whose query frames
+    and match frames both lie within ``span_frames`` of each other (runs of loops from one
+    revisit, or one group of Vertigo outliers). Cost ``O(K log K + P)``."""
+    match = np.asarray(match, dtype=np.int64)
+    query = np.asarray(query, dtype=np.int64)
+    order = np.argsort(query, kind="stable")
+    q_sorted = query[order]
+    pairs = []
+    for k in range(len(order)):
+        end = np.searchsorted(q_sorted, q_sorted[k] + span_frames, side="right")
+        if end > k + 1:
+            others = order[k + 1 : end]
+            near = others[np.abs(match[others] - match[order[k]]) <= span_frames]
+            pairs.extend((min(order[k], o), max(order[k], o)) for o in near.tolist())
+    return np.asarray(sorted(pairs), dtype=np.int64).reshape(-1, 2)
+
+
+def connected_labels(count: int, edges: np.ndarray) -> np.ndarray:
+    """``(count,)`` component labels (0, 1, ... in order of first member) of an undirected graph
+    with ``(E, 2)`` ``edges`` (union-find)."""
+    parent = np.arange(count)
+
+    def find(i: int) -> int:
+        root = i
+        while parent[root] != root:
+            root = parent[root]
+        while parent[i] != root:
+            parent[i], i = root, parent[i]
+        return root
+
+    for a, b in np.asarray(edges, dtype=np.int64).reshape(-1, 2).tolist():
+        ra, rb = find(a), find(b)
+        if ra != rb:
+            parent[max(ra, rb)] = min(ra, rb)
+    roots = np.array([find(i) for i in range(count)], dtype=np.int64)
+    _, labels = np.unique(roots, return_inverse=True)
+    return labels.astype(np.int64)

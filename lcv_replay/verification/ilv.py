@@ -510,12 +510,18 @@ def _make_ilv(config: VerificationConfig, *, odometry_information=None) -> Incre
     return IncrementalVerifier("ilv", config, PaperModel, odometry_information=odometry_information)
 
 
-@register("ilv+", help="improved ilv: Mahalanobis consistency, consensus refinement, reduced graphs")
-def _make_ilv_plus(config: VerificationConfig, *, odometry_information=None) -> IncrementalVerifier:
-    schedule = dataclasses.replace(
-        config,
-        iterations_per_window=config.ilv_plus.iterations_per_window,
-        hypotheses_per_iteration=config.ilv_plus.hypotheses_per_iteration,
-        max_hypotheses=config.ilv_plus.max_hypotheses,
-    )
-    return IncrementalVerifier("ilv+", schedule, PlusModel, odometry_information=odometry_information)
+@register("ilv+", help="improved ilv (the default): measured loops by cluster consensus against an iSAM2 working hypothesis, same-place loops by a hypothesis table with Mahalanobis tests")
+def _make_ilv_plus(config: VerificationConfig, *, odometry_information=None):
+    """``ilv+`` for the kind of loop ``config.ilv_plus.loops`` names (``auto``: measured; the replay
+    and the bench decide it first, see :func:`~lcv_replay.verification.config.with_loop_kind`)."""
+    if config.ilv_plus.loops == "same-place":
+        schedule = dataclasses.replace(
+            config,
+            iterations_per_window=config.ilv_plus.iterations_per_window,
+            hypotheses_per_iteration=config.ilv_plus.hypotheses_per_iteration,
+            max_hypotheses=config.ilv_plus.max_hypotheses,
+        )
+        return IncrementalVerifier("ilv+", schedule, PlusModel, odometry_information=odometry_information)
+    from lcv_replay.verification.consensus import ConsensusVerifier
+
+    return ConsensusVerifier(config, odometry_information=odometry_information)

@@ -128,7 +128,67 @@ class _Generation:
     dropped: list[tuple[int, str]] = field(default_factory=list)
 
 
-class IncrementalVerifier:
+class WindowedVerifier:
+    """The frame-by-frame shell of a windowed verifier (``ilv``, ``ilv+``): odometry buffered until
+    the window end, candidates admitted into the history, a step at every window of
+    ``config.window_frames`` frames. A subclass sets ``name``, ``config``, ``chain``, ``history``,
+    ``_pending`` (buffered odometry), ``_stepped_frames`` and ``_result``, and implements
+    :meth:`_window_end`."""
+
+    name: str
+    config: VerificationConfig
+    chain: OdometryChain
+    history: ConstraintHistory
+    _pending: list[tuple[float, float, float]]
+    _stepped_frames: int
+    _result: VerificationResult | None
+
+    def add_frame(self, frame_index: int, odom: Pose2D) -> None:
+        self._pending.append(checked_frame(self.name, frame_index, self.num_frames, odom, finished=self._result is not None))
+
+    def add_candidates(self, candidates: Sequence[LoopCandidate]) -> list[Constraint]:
+        if self._result is not None:
+            raise VerificationError(f"{self.name}: add_candidates after result()", fix="build a new verifier")
+        return self.history.admit(candidates, self.num_frames)
+
+    @property
+    def num_frames(self) -> int:
+        """Frames added so far."""
+        return len(self.chain) + len(self._pending)
+
+    def step(self) -> VerifierStep | None:
+        n = self.num_frames
+        if n == 0 or n % self.config.window_frames != 0 or n == self._stepped_frames:
+            return None
+        return self._window_end()
+
+    def _window_end(self) -> VerifierStep:
+        raise NotImplementedError
+
+    def _finish(self, step: VerifierStep, trajectory: np.ndarray) -> VerificationResult:
+        """The result of the last ``step`` with the final ``trajectory`` (kept: ``result()`` is
+        idempotent); the paper's consistent set is judged on that trajectory."""
+        constraints = tuple(self.history.constraints)
+        paper: tuple[int, ...] = ()
+        if constraints:
+            q = np.array([c.query_frame for c in constraints])
+            m = np.array([c.match_frame for c in constraints])
+            ok = position_consistent(trajectory[q], trajectory[m], self.config.consistency_radius_m)
+            paper = tuple(int(i) for i in np.flatnonzero(ok))
+        self._result = VerificationResult(
+            method=self.name,
+            constraints=constraints,
+            accepted_constraint_ids=step.accepted_constraint_ids,
+            trajectory=trajectory,
+            ranking=step.ranking,
+            paper_consistent_ids=paper,
+            last_step=step,
+            ambiguous_constraint_ids=step.ambiguous_constraint_ids,
+        )
+        return self._result
+
+
+class IncrementalVerifier(WindowedVerifier):
     """Multi-model hypothesize-and-verify, fed frame by frame (the ``Verifier`` protocol).
 
     Args:
@@ -167,30 +227,12 @@ class IncrementalVerifier:
         self._result: VerificationResult | None = None
 
     # ------------------------------------------------------------------ Verifier protocol
-    def add_frame(self, frame_index: int, odom: Pose2D) -> None:
-        self._pending.append(checked_frame(self.name, frame_index, self.num_frames, odom, finished=self._result is not None))
-
-    def add_candidates(self, candidates: Sequence[LoopCandidate]) -> list[Constraint]:
-        if self._result is not None:
-            raise VerificationError(f"{self.name}: add_candidates after result()", fix="build a new verifier")
-        return self.history.admit(candidates, self.num_frames)
-
-    @property
-    def num_frames(self) -> int:
-        """Frames added so far."""
-        return len(self.chain) + len(self._pending)
 
     def _flush(self) -> None:
         """Append the buffered odometry to the chain (done once per window, not per frame)."""
         if self._pending:
             self.chain.extend(np.asarray(self._pending, dtype=np.float64))
             self._pending.clear()
-
-    def step(self) -> VerifierStep | None:
-        n = self.num_frames
-        if n == 0 or n % self.config.window_frames != 0 or n == self._stepped_frames:
-            return None
-        return self._window_end()
 
     def result(self) -> VerificationResult:
         if self._result is not None:
@@ -203,19 +245,7 @@ class IncrementalVerifier:
         step = self._last_step
         assert step is not None  # a window end ran above or earlier
         top = self.hypotheses[step.ranking[0].id]
-        trajectory = self.model.final_trajectory(top, step.accepted_constraint_ids)
-        constraints = tuple(self.history.constraints)
-        paper = self._paper_consistent(trajectory, constraints)
-        self._result = VerificationResult(
-            method=self.name,
-            constraints=constraints,
-            accepted_constraint_ids=step.accepted_constraint_ids,
-            trajectory=trajectory,
-            ranking=step.ranking,
-            paper_consistent_ids=paper,
-            last_step=step,
-        )
-        return self._result
+        return self._finish(step, self.model.final_trajectory(top, step.accepted_constraint_ids))
 
     # ------------------------------------------------------------------ the schedule
     def ranked_ids(self) -> list[int]:
@@ -395,10 +425,3 @@ class IncrementalVerifier:
             rank_key=float(self.model.rank_key(h, score, self.table.support(hypothesis_id))),
         )
 
-    def _paper_consistent(self, trajectory: np.ndarray, constraints: Sequence[Constraint]) -> tuple[int, ...]:
-        if not constraints:
-            return ()
-        q = np.array([c.query_frame for c in constraints])
-        m = np.array([c.match_frame for c in constraints])
-        ok = position_consistent(trajectory[q], trajectory[m], self.config.consistency_radius_m)
-        return tuple(int(i) for i in np.flatnonzero(ok))

@@ -224,20 +224,23 @@ class OdometryChain:
         self._prefix[self._n : self._n + k] = random_walk_prefix(poses, self.step_covariance, base)
         self._n += k
 
-    def segment_covariance(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    def segment_covariance(self, a: np.ndarray, b: np.ndarray, prefix: np.ndarray | None = None) -> np.ndarray:
         """Covariance of the composed odometry ``O_a⁻¹ O_b`` (right perturbation at ``b``, the
         convention of GTSAM's ``BetweenFactor``): ``Ad(O_b)⁻¹ (S[b] - S[a]) Ad(O_b)⁻ᵀ``.
 
         Args:
             a, b: ``(K,)`` frame indices with ``a < b``.
+            prefix: ``(N, 3, 3)`` prefix sums of another step covariance
+                (:func:`random_walk_prefix` of the chain's poses), or ``None`` for the chain's own.
 
         Returns:
             ``(K, 3, 3)``.
         """
         a = np.asarray(a, dtype=np.int64)
         b = np.asarray(b, dtype=np.int64)
+        prefix = self._prefix if prefix is None else prefix
         inv_ad = se2.adjoint_inverse(self._poses[b])
-        return inv_ad @ (self._prefix[b] - self._prefix[a]) @ np.swapaxes(inv_ad, -1, -2)
+        return inv_ad @ (prefix[b] - prefix[a]) @ np.swapaxes(inv_ad, -1, -2)
 
     def interpolate(self, node_frames: np.ndarray, node_poses: np.ndarray, frames: np.ndarray) -> np.ndarray:
         """Poses of ``frames`` given the estimated poses of ``node_frames``.

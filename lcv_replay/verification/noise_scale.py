@@ -122,3 +122,37 @@ def calibrated_gate(d2: np.ndarray, confidence: float) -> tuple[float, NoiseFit]
     """The ``confidence`` quantile of a :func:`fit_noise` fit to ``d2``, and the fit."""
     fit = fit_noise(d2)
     return fit.quantile(confidence), fit
+
+
+#: Quantiles matched by :func:`fit_noise_quantiles`.
+_MATCHED_QUANTILES = (0.5, 0.9)
+
+
+def fit_noise_quantiles(d2: np.ndarray) -> NoiseFit:
+    """A robust fit of ``d² / (3 s) ~ F(3, ν)``: ``s`` and ``ν`` match the sample's median and
+    90th percentile (the tail's shape from the bulk), so up to a tenth of the sample may be
+    contaminated, by false loops or otherwise, without moving the fit; the maximum-likelihood fit
+    (:func:`fit_noise`) follows the largest values instead.
+
+    Raises:
+        VerificationError: fewer than ten usable values.
+    """
+    from scipy import special
+
+    x = np.asarray(d2, dtype=np.float64)
+    x = x[np.isfinite(x) & (x > 0)]
+    if len(x) < 10:
+        raise VerificationError(f"a noise fit needs at least 10 positive statistics, got {len(x)}")
+    q50, q90 = np.quantile(x, _MATCHED_QUANTILES)
+    observed = math.log(q90 / q50)
+    best: tuple[float, float, float] | None = None
+    for dof in (*DOF_GRID.tolist(), MAX_DOF):
+        if dof >= MAX_DOF:
+            m50, m90 = special.chdtri(3, 0.5), special.chdtri(3, 0.1)
+        else:
+            m50, m90 = 3.0 * special.fdtri(3, dof, 0.5), 3.0 * special.fdtri(3, dof, 0.9)
+        miss = abs(math.log(m90 / m50) - observed)
+        if best is None or miss < best[0]:
+            best = (miss, q50 / m50, dof)
+    assert best is not None
+    return NoiseFit(float(best[1]), float(best[2]), len(x))

@@ -313,6 +313,192 @@ def relative_covariances(graph, poses: np.ndarray, keys: Sequence[int], match: n
 _MARGINAL_CHUNK = 32
 
 
+class IncrementalGraph:
+    """The odometry chain plus a changing set of loop factors, kept solved by iSAM2
+    (``gtsam.ISAM2``): ``ilv+``'s working hypothesis.
+
+    Frame ``k`` is key ``k``; frame 0 has the usual prior. Frames are appended with
+    :meth:`extend` (initialised by odometry from the last estimate) and loops are added or removed
+    by their constraint id with :meth:`update`. Each update re-eliminates only the part of the
+    Bayes tree the change touches, then relinearises until no variable moves by more than
+    ``relinearize_threshold`` (at most ``max_relinearizations`` extra steps), so the estimate is
+    converged to that threshold. Cost of an update: the cliques between the changed keys and the
+    root, not the whole history.
+
+    Args:
+        odom_information: ``(3, 3)`` information of one odometry step.
+        relinearize_threshold: iSAM2's relinearisation threshold (tangent-space units).
+        max_relinearizations: extra relinearisation steps after each update.
+    """
+
+    def __init__(self, odom_information: np.ndarray, *, relinearize_threshold: float = 0.05, max_relinearizations: int = 2):
+        import gtsam
+
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(float(relinearize_threshold))
+        params.relinearizeSkip = 2**30  # relinearise only when asked (force_relinearize)
+        self._isam = gtsam.ISAM2(params)
+        self._odom_noise = information_to_noise(odom_information, what="odometry")
+        self._odom = np.zeros((0, 3))
+        self._pending_from = 0  # first frame not yet in iSAM2
+        self._slots: dict[int, int] = {}  # loop id -> iSAM2 factor index
+        self._loops: dict[int, LoopFactor] = {}
+        self._params = params
+        self._estimate: np.ndarray | None = None
+        self.max_relinearizations = int(max_relinearizations)
+        self.updates = 0  # iSAM2 update calls so far (for timings)
+
+    def __len__(self) -> int:
+        return len(self._odom)
+
+    @property
+    def loop_ids(self) -> frozenset[int]:
+        """Ids of the loops in the graph."""
+        return frozenset(self._slots)
+
+    def extend(self, odom_poses: np.ndarray) -> None:
+        """Set the cumulative odometry to ``odom_poses`` (``(N, 3)``; the first frames must equal
+        the ones given before); the new frames join the graph at the next :meth:`update`."""
+        odom = check_poses(odom_poses, "odom_poses")
+        if len(odom) < len(self._odom):
+            raise VerificationError(f"odometry cannot shrink from {len(self._odom)} to {len(odom)} frames")
+        self._odom = odom.copy()
+
+    def update(self, add: Sequence[tuple[int, "LoopFactor"]] = (), remove: Sequence[int] = (), *, relinearize: bool = True) -> None:
+        """Add loops ``(id, factor)`` and remove loops by id (and append the frames given to
+        :meth:`extend`); then relinearise to convergence, or (``relinearize=False``) not.
+
+        Raises:
+            VerificationError: a loop id added twice, removed while absent, or referencing a
+                frame outside the graph.
+            OptimisationFailed: iSAM2 failed.
+        """
+        import gtsam
+
+        n = len(self._odom)
+        factors = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        start = self._pending_from
+        if start < n:
+            if start == 0:
+                factors.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*self._odom[0]), gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)))
+                values.insert(0, gtsam.Pose2(*self._odom[0]))
+                first, last = 1, self._odom[0]
+            else:
+                first, last = start, self.estimate()[start - 1]
+            steps = se2.between(self._odom[first - 1 : n - 1], self._odom[first:n])
+            extended = se2.compose(last, se2.between(self._odom[first - 1], self._odom[first:n]))
+            for k, (step, pose) in enumerate(zip(steps.tolist(), extended.tolist()), start=first):
+                factors.add(gtsam.BetweenFactorPose2(k - 1, k, gtsam.Pose2(*step), self._odom_noise))
+                values.insert(k, gtsam.Pose2(*pose))
+        added_ids = []
+        for loop_id, loop in add:
+            if loop_id in self._slots or loop_id in added_ids:
+                raise VerificationError(f"loop {loop_id} is already in the graph")
+            if not (0 <= loop.match_frame < n and 0 <= loop.query_frame < n):
+                raise VerificationError(f"loop {loop_id} references a frame outside 0..{n - 1}")
+            added_ids.append(int(loop_id))
+        add_loop_factors(factors, [loop for _, loop in add])
+        removed = []
+        for loop_id in remove:
+            if loop_id not in self._slots:
+                raise VerificationError(f"loop {loop_id} is not in the graph")
+            removed.append(self._slots.pop(loop_id))
+        if factors.size() == 0 and not removed and not relinearize:
+            return
+        try:
+            result = self._isam.update(factors, values, removed, force_relinearize=relinearize)
+            self.updates += 1
+            new_slots = list(result.getNewFactorsIndices())
+            for _ in range(self.max_relinearizations if relinearize and result.getVariablesRelinearized() else 0):
+                again = self._isam.update(force_relinearize=True)
+                self.updates += 1
+                if again.getVariablesRelinearized() == 0:
+                    break
+        except RuntimeError as exc:
+            raise OptimisationFailed(f"iSAM2 update failed: {_first_line(exc)}") from exc
+        offset = factors.size() - len(added_ids)  # the odometry factors come first
+        for k, (loop_id, (_, loop)) in enumerate(zip(added_ids, add)):
+            self._slots[loop_id] = int(new_slots[offset + k])
+            self._loops[loop_id] = loop
+        for loop_id in remove:
+            self._loops.pop(loop_id, None)
+        self._pending_from = n
+        self._estimate = None
+
+    def restart(self, initial: np.ndarray) -> None:
+        """Rebuild the iSAM2 state from scratch with the same factors, linearised at ``initial``
+        (``(N, 3)``, e.g. an earlier estimate of the same loop set): a way back to a known
+        solution after changes that relinearised far away from it."""
+        import gtsam
+
+        initial = check_poses(initial, "initial")
+        n = len(self._odom)
+        if len(initial) != n:
+            raise VerificationError(f"restart needs {n} poses, got {len(initial)}")
+        loops = sorted(self._loops.items())
+        self._isam = gtsam.ISAM2(self._params)
+        self._slots, self._loops = {}, {}
+        self._pending_from, self._estimate = 0, None
+        factors = gtsam.NonlinearFactorGraph()
+        factors.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*self._odom[0]), gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)))
+        steps = se2.between(self._odom[:-1], self._odom[1:])
+        for k, step in enumerate(steps.tolist(), start=1):
+            factors.add(gtsam.BetweenFactorPose2(k - 1, k, gtsam.Pose2(*step), self._odom_noise))
+        add_loop_factors(factors, [loop for _, loop in loops])
+        try:
+            result = self._isam.update(factors, initial_values(initial), [], force_relinearize=True)
+            self.updates += 1
+        except RuntimeError as exc:
+            raise OptimisationFailed(f"iSAM2 restart failed: {_first_line(exc)}") from exc
+        new_slots = list(result.getNewFactorsIndices())
+        offset = factors.size() - len(loops)
+        for k, (loop_id, loop) in enumerate(loops):
+            self._slots[loop_id] = int(new_slots[offset + k])
+            self._loops[loop_id] = loop
+        self._pending_from = n
+
+    def marginal_covariance(self, frame: int) -> np.ndarray:
+        """``(3, 3)`` marginal covariance of frame ``frame`` (right perturbation at its estimate),
+        from iSAM2's Bayes tree (cheap for recent frames, near the root)."""
+        try:
+            return np.asarray(self._isam.marginalCovariance(int(frame)), dtype=np.float64)
+        except RuntimeError as exc:
+            raise OptimisationFailed(f"marginal covariance of frame {frame} failed: {_first_line(exc)}") from exc
+
+    def relative_covariance(self, match: int, query: int) -> np.ndarray:
+        """``(3, 3)`` covariance of the relative pose ``x_match⁻¹ x_query`` under the graph
+        (GTSAM's joint marginal of the two frames from iSAM2's Bayes tree, transported as in
+        :func:`relative_covariances`; costly for two frames deep in the tree)."""
+        import gtsam
+
+        m, q = int(match), int(query)
+        try:
+            joint = self._isam.jointMarginalCovariance(gtsam.KeyVector([m, q]))
+            block = np.block([[joint.at(m, m), joint.at(m, q)], [joint.at(q, m), joint.at(q, q)]])
+        except RuntimeError as exc:
+            raise OptimisationFailed(f"joint marginal of frames {m} and {q} failed: {_first_line(exc)}") from exc
+        x = self.estimate()
+        jac = np.zeros((3, 6))
+        jac[:, :3] = -se2.adjoint_inverse(se2.between(x[m], x[q]))
+        jac[:, 3:] = np.eye(3)
+        out = jac @ block @ jac.T
+        return 0.5 * (out + out.T)
+
+    def estimate(self) -> np.ndarray:
+        """``(N', 3)`` current estimate of the frames in the graph (cached until the next update)."""
+        if self._estimate is None:
+            import gtsam
+
+            if self._pending_from == 0:
+                return np.zeros((0, 3))
+            poses = np.asarray(gtsam.utilities.extractPose2(self._isam.calculateEstimate()), dtype=np.float64)
+            if not np.isfinite(poses.sum()):
+                raise OptimisationFailed("iSAM2 produced a non-finite estimate")
+            self._estimate = poses
+        return self._estimate
+
+
 def initial_values(poses: np.ndarray, keys: Sequence[int] | None = None):
     """``gtsam.Values`` with ``Pose2`` key ``keys[i]`` (default ``i``) = ``poses[i]`` for ``(N, 3)`` poses."""
     import gtsam

@@ -69,6 +69,8 @@ def test_summary_json_has_the_stable_keys(square):
     assert data["ate_rmse_m"] is not None and data["hypotheses"] >= 1
     assert data["interrupted"] is False and data["truth_source"] == "labels"
     assert data["config"]["verification"]["window_frames"] == 100
+    # the log's candidates carry relative poses: ilv+ verifies them by cluster consensus
+    assert data["config"]["verification"]["ilv_plus"]["loops"] == "measured"
 
 
 def test_recording_has_the_entities_of_a_g2o_replay(square):

@@ -115,4 +115,6 @@ def test_demo_command_replays_the_cached_recording(demo_cache, tmp_path):
     data = json.loads(js.read_text())
     assert data["frames"] == FRAMES and data["constraint_source"] == "images" and data["log"] == str(log)
     assert data["config"]["retrieval"]["backend"] == "efficientnet-lite0"  # the defaults
+    # our retrieval's loops are same-place (no relative pose): ilv+ verifies them with its hypothesis table
+    assert data["config"]["verification"]["ilv_plus"]["loops"] == "same-place"
     assert bp.CAMERA_LEFT in read_rrd(rrd)

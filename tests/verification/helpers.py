@@ -8,11 +8,17 @@ import dataclasses
 from lcv_replay.records import LoopCandidate, Pose2D
 from lcv_replay.verification.config import VerificationConfig
 
-#: A small ilv/ilv+ configuration for fast tests: windows of 100 frames, few hypotheses.
+#: A small ilv/ilv+ configuration for fast tests: windows of 100 frames, few hypotheses; ``ilv+``
+#: is its hypothesis-table verifier (same-place loops: the synthetic worlds' candidates carry no
+#: relative pose). The cluster-consensus verifier (measured loops) has its own tests.
 SMALL = VerificationConfig(window_frames=100, iterations_per_window=3, hypotheses_per_iteration=3, max_hypotheses=8)
 SMALL = dataclasses.replace(
-    SMALL, ilv_plus=dataclasses.replace(SMALL.ilv_plus, iterations_per_window=3, hypotheses_per_iteration=3, max_hypotheses=8)
+    SMALL, ilv_plus=dataclasses.replace(SMALL.ilv_plus, loops="same-place", iterations_per_window=3, hypotheses_per_iteration=3, max_hypotheses=8)
 )
+#: The default configuration with ``ilv+``'s hypothesis-table verifier (for its tests on real,
+#: measured loops, which the default would give to the cluster-consensus verifier).
+TABLE = VerificationConfig()
+TABLE = dataclasses.replace(TABLE, ilv_plus=dataclasses.replace(TABLE.ilv_plus, loops="same-place"))
 
 
 def candidates_by_query(candidates) -> dict[int, list[LoopCandidate]]:

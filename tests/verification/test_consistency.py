@@ -103,3 +103,55 @@ def test_table_rejects_inconsistent_updates():
         table.row(9)
     table.remove([0])
     assert len(table) == 0 and 0 not in table
+
+
+# --------------------------------------------------------------------------- pairwise cycles (ilv+)
+@pytest.mark.parametrize("ends", [(2, 5, 30, 33), (5, 2, 30, 33), (2, 5, 33, 30), (3, 3, 30, 31)])
+def test_cycle_d2_is_the_innovation_of_one_loop_under_the_other_and_the_odometry(ends):
+    """The pairwise statistic equals GTSAM's innovation of loop 2 under {loop 1, the odometry
+    between the two ends}, whatever the order of the ends."""
+    import gtsam
+
+    from lcv_replay.verification.consistency import cycle_d2
+    from lcv_replay.se2 import between as se2_between, compose as se2_compose, logmap as se2_logmap
+    from lcv_replay.verification.measurements import OdometryChain
+    from lcv_replay.verification.pose_graph import optimise_lm, relative_covariances
+
+    rng = np.random.default_rng(1)
+    steps = np.column_stack([np.full(39, 1.0), rng.normal(0, 0.05, 39), rng.normal(0, 0.1, 39)])
+    odo = np.zeros((40, 3))
+    for k in range(39):
+        odo[k + 1] = se2_compose(odo[k], steps[k])
+    chain = OdometryChain(np.diag([100.0, 400.0, 1000.0]))
+    chain.extend(odo)
+    m1, m2, q1, q2 = ends
+    r1, r2 = np.diag([0.01, 0.02, 0.003]), np.diag([0.02, 0.01, 0.004])
+    z1 = se2_compose(se2_between(odo[m1], odo[q1]), [0.3, -0.2, 0.05])
+    z2 = se2_compose(se2_between(odo[m2], odo[q2]), [-0.1, 0.25, -0.03])
+    d2 = cycle_d2(chain, (np.array([m1]), np.array([m2])), (np.array([q1]), np.array([q2])), (z1[None], z2[None]), (r1[None], r2[None]))[0]
+
+    graph = gtsam.NonlinearFactorGraph()
+    keys = sorted({m1, m2, q1, q2})
+    graph.add(gtsam.PriorFactorPose2(m1, gtsam.Pose2(*odo[m1]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
+    for a, b in ((m1, m2), (q1, q2)):
+        lo, hi = min(a, b), max(a, b)
+        if lo < hi:
+            cov = chain.segment_covariance(np.array([lo]), np.array([hi]))[0]
+            graph.add(gtsam.BetweenFactorPose2(lo, hi, gtsam.Pose2(*se2_between(odo[lo], odo[hi])), gtsam.noiseModel.Gaussian.Covariance(cov)))
+    graph.add(gtsam.BetweenFactorPose2(m1, q1, gtsam.Pose2(*z1), gtsam.noiseModel.Gaussian.Covariance(r1)))
+    solution = optimise_lm(graph, np.array([odo[k] for k in keys]), keys=keys)
+    sigma = relative_covariances(graph, solution.poses, keys, np.array([m2]), np.array([q2]))[0]
+    x = dict(zip(keys, solution.poses))
+    r = se2_logmap(se2_between(z2, se2_between(x[m2], x[q2])))
+    assert d2 == pytest.approx(mahalanobis_d2(r[None], (r2 + sigma)[None])[0], rel=1e-6)
+
+
+def test_neighbour_pairs_and_connected_labels():
+    from lcv_replay.verification.consistency import connected_labels, neighbour_pairs
+
+    match = np.array([10, 11, 12, 40, 13, 300])
+    query = np.array([100, 101, 102, 103, 104, 105])
+    pairs = neighbour_pairs(match, query, 3)
+    assert pairs.tolist() == [[0, 1], [0, 2], [1, 2], [1, 4], [2, 4]]  # 40 and 300 are far in match frames
+    assert connected_labels(6, pairs).tolist() == [0, 0, 0, 1, 0, 2]
+    assert connected_labels(3, np.zeros((0, 2), dtype=np.int64)).tolist() == [0, 1, 2]

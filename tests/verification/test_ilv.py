@@ -16,7 +16,7 @@ from lcv_replay.verification.ilv import PlusModel
 from lcv_replay.verification.measurements import OdometryChain, loop_measurement
 from lcv_replay.verification.registry import available_methods, make_verifier
 from tests.shared_data import shared_path
-from tests.verification.helpers import SMALL, candidates_by_query, feed, feed_frames
+from tests.verification.helpers import SMALL, TABLE, candidates_by_query, feed, feed_frames
 from tests.verification.ilv_synthetic import ODOM_INFORMATION, circle_world
 
 #: A measured loop (relative pose from geometric verification): sigma 10 cm, 10 cm, 0.01 rad.
@@ -168,7 +168,7 @@ def test_robustslam_kitti_06_alpha_050():
     odom = graph.odometry_poses()
     truth_pairs = load_true_loops(folder / "kitti_06_alpha_0.50_GT_LC.txt", len(odom))
     ground_truth = load_ground_truth(folder / "kitti_06_GT.g2o", len(odom))
-    verifier = make_verifier("ilv+", VerificationConfig(), odometry_information=graph.odometry_information_matrix())
+    verifier = make_verifier("ilv+", TABLE, odometry_information=graph.odometry_information_matrix())
     feed_frames(verifier, odom, candidates_by_query(graph.loop_candidates()))
     result = verifier.result()
     accepted = {result.constraints[i].candidate.pair for i in result.accepted_constraint_ids}

@@ -15,7 +15,7 @@ from lcv_replay import se2
 from lcv_replay.verification.registry import make_verifier
 from tests.shared_data import shared_path
 from tests.verification.ilv_synthetic import circle_world
-from tests.verification.helpers import SMALL, candidates_by_query, feed, feed_frames
+from tests.verification.helpers import SMALL, TABLE, candidates_by_query, feed, feed_frames
 
 CHI2_3_Q999 = 16.266  # chi-square quantile, 3 dof, 0.999
 
@@ -140,7 +140,7 @@ def _run_manhattan(manhattan_1200, calibrate: bool):
     from lcv_replay.evaluation.metrics import absolute_trajectory_error
 
     graph, odom, truth, real, false = manhattan_1200
-    config = VerificationConfig()
+    config = TABLE
     config = dataclasses.replace(config, ilv_plus=dataclasses.replace(config.ilv_plus, calibrate_gate=calibrate))
     verifier = make_verifier("ilv+", config, odometry_information=graph.odometry_information_matrix())
     feed_frames(verifier, odom, candidates_by_query(real + list(false)))

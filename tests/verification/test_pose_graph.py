@@ -166,3 +166,40 @@ def test_reduced_graph_and_bridge_match_the_full_graph():
     assert _ate(interpolated, world.truth) < 0.25 * _ate(world.odom, world.truth)
     with pytest.raises(VerificationError, match="not a node"):
         pg.build_reduced_graph(chain, nodes[nodes != nodes[3]], loops)
+
+
+# --------------------------------------------------------------------------- iSAM2 working graph (ilv+)
+def test_incremental_graph_matches_a_batch_solve_and_undoes_a_step_exactly():
+    from lcv_replay.se2 import between as se2_between
+    from lcv_replay.verification.pose_graph import IncrementalGraph, LoopFactor, build_graph, optimise_lm
+    world = circle_world(num_false=0)
+    loops = world.true_candidates[::3]
+    info = np.diag([25.0, 25.0, 400.0])
+    factors = [LoopFactor(c.match_frame, c.query_frame, se2_between(world.truth[c.match_frame], world.truth[c.query_frame]), info) for c in loops]
+    graph = IncrementalGraph(ODOM_INFORMATION)
+    graph.extend(world.odom[:300])
+    graph.update()
+    graph.extend(world.odom)
+    graph.update(add=list(enumerate(factors)))
+    assert graph.loop_ids == frozenset(range(len(factors))) and len(graph) == len(world.odom)
+    batch = build_graph(world.odom, ODOM_INFORMATION, [], loop_default_information=info)
+    from lcv_replay.verification.pose_graph import add_loop_factors
+
+    add_loop_factors(batch, factors)
+    reference = optimise_lm(batch, world.odom, relative_error_tol=1e-10).poses
+    np.testing.assert_allclose(graph.estimate(), reference, atol=2e-3)
+
+    before = graph.estimate().copy()
+    wrong = LoopFactor(10, 390, np.array([0.0, 0.0, 0.0]), info)  # opposite sides of the circle
+    graph.update(add=[(99, wrong)], relinearize=False)
+    assert np.max(np.abs(graph.estimate() - before)) > 1.0
+    graph.update(remove=[99], relinearize=False)  # one Gauss-Newton step, undone (to iSAM2's wildfire threshold)
+    np.testing.assert_allclose(graph.estimate(), before, atol=1e-4)
+    graph.restart(before)  # relinearised at `before`: one more Gauss-Newton step from it
+    np.testing.assert_allclose(graph.estimate(), before, atol=5e-3)
+    sigma = graph.relative_covariance(factors[0].match_frame, factors[0].query_frame)
+    assert np.all(np.linalg.eigvalsh(sigma) > 0) and np.all(np.linalg.eigvalsh(np.linalg.inv(info) - sigma) > 0)
+    with pytest.raises(VerificationError, match="already in the graph"):
+        graph.update(add=[(0, factors[0])])
+    with pytest.raises(VerificationError, match="not in the graph"):
+        graph.update(remove=[12345])
