@@ -369,17 +369,16 @@ class ConsensusVerifier(WindowedVerifier):
         start = len(self._m)
         if start == len(cons):
             return
-        factors = [pose_graph.loop_factor(c, self.history.loop_default_information) for c in cons[start:]]
-        info = np.array([f.information for f in factors]).reshape(-1, 3, 3)
-        self._m = np.concatenate([self._m, [f.match_frame for f in factors]]).astype(np.int64)
-        self._q = np.concatenate([self._q, [f.query_frame for f in factors]]).astype(np.int64)
-        self._z = np.concatenate([self._z, np.array([f.measured for f in factors]).reshape(-1, 3)])
+        m, q, z, info = pose_graph.loop_arrays(cons[start:], self.history.loop_default_information)
+        self._m = np.concatenate([self._m, m])
+        self._q = np.concatenate([self._q, q])
+        self._z = np.concatenate([self._z, z])
         self._info = np.concatenate([self._info, info])
         self._cov = np.concatenate([self._cov, np.linalg.inv(info)])
-        gap_ok = (self._q[start:] - self._m[start:]) >= self.plus.min_loop_gap_frames
+        gap_ok = (q - m) >= self.plus.min_loop_gap_frames
         self._fate = np.concatenate([self._fate, np.where(gap_ok, Fate.PENDING, Fate.INELIGIBLE).astype(np.int8)])
-        self._bound = np.concatenate([self._bound, np.zeros(len(factors))])
-        self._cluster_of = np.concatenate([self._cluster_of, np.full(len(factors), -1, dtype=np.int64)])
+        self._bound = np.concatenate([self._bound, np.zeros(len(m))])
+        self._cluster_of = np.concatenate([self._cluster_of, np.full(len(m), -1, dtype=np.int64)])
 
     def _updates(self) -> int:
         """iSAM2 updates so far, over every graph this verifier built."""

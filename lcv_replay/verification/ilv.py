@@ -234,11 +234,11 @@ class PlusModel:
         start = len(self._m)
         if start == len(cons):
             return
-        factors = [pose_graph.loop_factor(c, self.history.loop_default_information) for c in cons[start:]]
-        self._m = np.concatenate([self._m, [f.match_frame for f in factors]]).astype(np.int64)
-        self._q = np.concatenate([self._q, [f.query_frame for f in factors]]).astype(np.int64)
-        self._z = np.concatenate([self._z, np.array([f.measured for f in factors]).reshape(-1, 3)])
-        self._r = np.concatenate([self._r, np.linalg.inv(np.array([f.information for f in factors]).reshape(-1, 3, 3))])
+        m, q, z, info = pose_graph.loop_arrays(cons[start:], self.history.loop_default_information)
+        self._m = np.concatenate([self._m, m])
+        self._q = np.concatenate([self._q, q])
+        self._z = np.concatenate([self._z, z])
+        self._r = np.concatenate([self._r, np.linalg.inv(info)])
 
     def eligible(self, constraints: Sequence[Constraint]) -> np.ndarray:
         self._sync()
