@@ -4,7 +4,6 @@ signal aborts at once and leaves no temp file (real processes, real signals)."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys

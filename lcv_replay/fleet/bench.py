@@ -357,8 +357,6 @@ def markdown(doc: dict[str, Any]) -> str:
               f"| no-op task, driver throughput inverse | {o['noop_task_s'] * 1e3:.2f} ms |"]
     im = doc.get("images")
     if im:
-        g2o_frames = sum(x["frames"] or 0 for x in first["logs"])
-        g2o_s = sum(x["replay_s"] or 0 for x in first["logs"])
         g2o = [x for x in first["logs"] if x["cpu_s"] is not None]
         g2o_frames = sum(x["frames"] or 0 for x in g2o)
         g2o_cpu = sum(x["cpu_s"] for x in g2o)

@@ -176,7 +176,7 @@ def test_a_killed_worker_is_retried_or_reported(ray_cluster, fleet_logs, slow_lo
     killer = threading.Thread(target=_kill_first_attempt, args=(run_dir / "logs" / "slow", killed), daemon=True)
     killer.start()
     with Cluster(ClusterSpec(max_retries=retries)) as cluster:  # the session's Ray, these task options
-        state = run_batch(spec, cluster)
+        run_batch(spec, cluster)
     killer.join(timeout=5)
     assert len(killed) == 1
     entry = json.loads((run_dir / "run.json").read_text())["logs"][0]

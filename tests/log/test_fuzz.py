@@ -10,10 +10,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from lcv_replay.bench.fuzz import GOOD_OUTCOMES, MUTATIONS, SeedLog, classify, format_report, mutants, run_fuzz
+from lcv_replay.bench.fuzz import MUTATIONS, SeedLog, classify, format_report, mutants, run_fuzz
 from lcv_replay.cli.inprocess import run_cli
 from tests.replay.helpers import record_square_route
 

@@ -9,7 +9,6 @@ import pytest
 
 from lcv_replay.errors import VerificationError
 from lcv_replay.records import LoopCandidate, Pose2D
-from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.noise_scale import MAX_DOF, calibrated_gate, fit_noise
 from lcv_replay import se2
 from lcv_replay.verification.registry import make_verifier
