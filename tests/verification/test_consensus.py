@@ -198,3 +198,23 @@ def test_ilv_plus_verifies_each_kind_of_loop_with_its_verifier():
     assert isinstance(make_verifier("ilv+", same_place), IncrementalVerifier)
     assert with_loop_kind(auto, same_place=False).ilv_plus.loops == "measured"
     assert with_loop_kind(same_place, same_place=False) is same_place  # a configured kind stays
+
+
+def test_the_scale_fit_costs_match_a_solve_per_covariance():
+    from lcv_replay.verification.consensus import student_t_scale_costs
+    from lcv_replay.verification.consistency import mahalanobis_d2
+
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(2, 200, 3, 3))
+    loop, odometry = a @ np.swapaxes(a, 1, 2) * 1e-3, b @ np.swapaxes(b, 1, 2) * 1e-2
+    error = rng.normal(size=(200, 3)) * 0.1
+    log_loop, log_odometry = (g.ravel() for g in np.meshgrid(np.arange(-3, 3.01, 0.5), np.arange(-3, 3.01, 0.5), indexing="ij"))
+    reference = []
+    for sl, so in zip(log_loop, log_odometry):
+        cov = 10.0**sl * loop + 10.0**so * odometry + 1e-12 * np.eye(3)
+        d2 = mahalanobis_d2(error, cov)
+        reference.append(np.sum(0.5 * np.linalg.slogdet(cov)[1] + 3.5 * np.log1p(d2 / 4.0)) + 0.5 * (sl - so) ** 2)
+    costs = student_t_scale_costs(error, loop, odometry, log_loop, log_odometry)
+    np.testing.assert_allclose(costs, reference, rtol=1e-9)
+    assert int(np.argmin(costs)) == int(np.argmin(reference))
+
