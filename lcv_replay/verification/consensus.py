@@ -1257,8 +1257,7 @@ class ConsensusVerifier(WindowedVerifier):
         self.graph = IncrementalGraph(self.chain.information / self.odometry_scale)
         self.graph.extend(self.chain.poses[: len(x)])
         accepted = self._ids(Fate.ACCEPTED)
-        self.graph.update(add=[(int(c), self._factor(int(c))) for c in accepted], relinearize=False)
-        self.graph.restart(x)
+        self.graph.restart(x, loops=[(int(c), self._factor(int(c))) for c in accepted])
         self.graph.update(relinearize=True)
         self._chi2_cache = None
 

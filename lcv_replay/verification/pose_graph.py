@@ -438,16 +438,29 @@ class IncrementalGraph:
         self._pending_from = n
         self._estimate = None
 
-    def restart(self, initial: np.ndarray) -> None:
+    def restart(self, initial: np.ndarray, loops: Sequence[tuple[int, "LoopFactor"]] | None = None) -> None:
         """Rebuild the iSAM2 state from scratch with the same factors, linearised at ``initial``
         (``(N, 3)``, e.g. an earlier estimate of the same loop set): a way back to a known
-        solution after changes that relinearised far away from it."""
+        solution after changes that relinearised far away from it.
+
+        ``loops`` ``(id, factor)``, if given, replace the loops first: a graph built at a known
+        solution in one batch elimination (adding them by :meth:`update` first would eliminate
+        the whole graph once more, at a linearisation point the restart throws away)."""
         import gtsam
 
         initial = check_poses(initial, "initial")
         n = len(self._odom)
         if len(initial) != n:
             raise VerificationError(f"restart needs {n} poses, got {len(initial)}")
+        if loops is not None:
+            replaced: dict[int, LoopFactor] = {}
+            for loop_id, loop in loops:
+                if int(loop_id) in replaced:
+                    raise VerificationError(f"loop {loop_id} is given twice")
+                if not (0 <= loop.match_frame < n and 0 <= loop.query_frame < n):
+                    raise VerificationError(f"loop {loop_id} references a frame outside 0..{n - 1}")
+                replaced[int(loop_id)] = loop
+            self._loops = replaced
         loops = sorted(self._loops.items())
         self._isam = gtsam.ISAM2(self._params)
         self._slots, self._loops = {}, {}

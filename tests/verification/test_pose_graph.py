@@ -195,7 +195,14 @@ def test_incremental_graph_matches_a_batch_solve_and_undoes_a_step_exactly():
     assert np.max(np.abs(graph.estimate() - before)) > 1.0
     graph.update(remove=[99], relinearize=False)  # one Gauss-Newton step, undone (to iSAM2's wildfire threshold)
     np.testing.assert_allclose(graph.estimate(), before, atol=1e-4)
+    rebuilt = IncrementalGraph(ODOM_INFORMATION)  # the same loops given to the restart: the same state
+    rebuilt.extend(world.odom)
+    rebuilt.restart(before, loops=list(enumerate(factors)))
     graph.restart(before)  # relinearised at `before`: one more Gauss-Newton step from it
+    np.testing.assert_array_equal(rebuilt.estimate(), graph.estimate())
+    assert rebuilt.loop_ids == graph.loop_ids and rebuilt.updates == 1
+    with pytest.raises(VerificationError, match="outside"):
+        rebuilt.restart(before, loops=[(0, LoopFactor(0, len(world.odom), factors[0].measured, info))])
     np.testing.assert_allclose(graph.estimate(), before, atol=5e-3)
     sigma = graph.relative_covariance(factors[0].match_frame, factors[0].query_frame)
     assert np.all(np.linalg.eigvalsh(sigma) > 0) and np.all(np.linalg.eigvalsh(np.linalg.inv(info) - sigma) > 0)
