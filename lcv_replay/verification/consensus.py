@@ -36,10 +36,11 @@ What ``ilv+`` does now, at every window end (and in :meth:`ConsensusVerifier.res
    cost. Members of a refused cluster that do not fit go back to the pool.
 4. **Contests (the multi-hypothesis step).** A refused cluster names its opponents: the accepted
    clusters it strains. The alternative hypothesis (an opponent out, the challenger and every
-   earlier loser to it in) is solved, and the two are ranked by the truncated-least-squares cost
-   ``J = χ² + gate × (loops left out)`` (the objective GNC-TLS minimises). The better one stays;
-   within ``ambiguity_margin`` gates of each other, neither wins: both sides leave the graph and
-   are reported **ambiguous** (flagged, never accepted), to be contested again at later windows.
+   earlier loser to it in; if that loses, the challenger alone) is solved, and the two are ranked
+   by the truncated-least-squares cost ``J = χ² + gate × (loops left out)`` (the objective
+   GNC-TLS minimises). The better one stays; within ``ambiguity_margin`` gates of each other,
+   neither wins: both sides leave the graph and are reported **ambiguous** (flagged, never
+   accepted), to be contested again at later windows.
 5. **Refinement and audit.** Accepted loops whose residual fails the gate at the new solution are
    taken out and contested against what they strain, or sent back to the pool; the accepted loops
    that fit least well are tested by leave-one-out from iSAM2's joint marginals.
