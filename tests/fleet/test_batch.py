@@ -168,6 +168,14 @@ def slow_log(tmp_path_factory):
     return log  # 720 frames: 1-2 s of replay, time enough to be killed mid-run
 
 
+@pytest.fixture(scope="module")
+def long_log(tmp_path_factory):
+    from tests.replay.helpers import record_square_route
+
+    log, _ = record_square_route(tmp_path_factory.mktemp("long"), laps=20, side_poses=60, name="slow.mcap")
+    return log  # 4,800 frames: longer to replay than the engine's grace for a cancelled task
+
+
 @pytest.mark.parametrize("retries", [1, 0])
 def test_a_killed_worker_is_retried_or_reported(ray_cluster, fleet_logs, slow_log, tmp_path, retries):
     run_dir = tmp_path / "run"
@@ -189,9 +197,12 @@ def test_a_killed_worker_is_retried_or_reported(ray_cluster, fleet_logs, slow_lo
     assert _temp_files(run_dir) == []
 
 
-def test_a_second_ctrl_c_cancels_the_running_logs_cleanly(ray_cluster, fleet_logs, slow_log, tmp_path):
+def test_a_second_ctrl_c_cancels_the_running_logs_cleanly(ray_cluster, fleet_logs, long_log, tmp_path):
+    """The interrupt lands while the long log replays (the grace the engine gives a cancelled task
+    is shorter than its replay: with ``slow_log``, 1 to 2 s, the replay could end in the grace and
+    be recorded whole, as CI on a clean clone saw)."""
     run_dir = tmp_path / "run"
-    spec = _spec(fleet_logs, run_dir, logs=[slow_log, fleet_logs.logs[0]])  # the larger (slow) one goes first
+    spec = _spec(fleet_logs, run_dir, logs=[long_log, fleet_logs.logs[0]])  # the larger (slow) one goes first
 
     def on_event(event):
         if event.kind == "started" and event.log.name == "slow":
@@ -202,14 +213,7 @@ def test_a_second_ctrl_c_cancels_the_running_logs_cleanly(ray_cluster, fleet_log
 
     state = run_batch(spec, ray_cluster, on_event=on_event)
     run = json.loads((run_dir / "run.json").read_text())
-    assert state.interrupted and run["interrupted"]
-    # the small log runs beside the slow one and may finish before the interrupt (a race the test
-    # does not control); what finished is recorded whole, what was running is pending
-    done = [Path(e["log"]).name for e in run["logs"]]
-    assert done in ([], ["route0.mcap"]) and all(e["status"] == "ok" and e["error"] is None for e in run["logs"])
-    assert sorted(done + [Path(p).name for p in run["pending"]]) == ["route0.mcap", "slow.mcap"]
-    assert "slow.mcap" not in done
+    assert state.interrupted and run["interrupted"] and run["logs"] == []
+    assert sorted(Path(p).name for p in run["pending"]) == ["route0.mcap", "slow.mcap"]
     assert not (run_dir / "logs" / "slow").exists()  # cancelled: nothing half-written, not even its folder
-    for name in done:
-        assert (run_dir / "logs" / Path(name).stem / "summary.json").is_file()
     assert (run_dir / "fleet.md").is_file() and _temp_files(run_dir) == []
