@@ -118,9 +118,10 @@ CI_WORLD_SEED = 305
 @pytest.mark.slow
 def test_a_true_cluster_blocked_by_a_false_loop_wins_its_contest_on_ringcity(tmp_path):
     """Vertigo ringCity with 500 grouped outliers, seed 9001 (drawn fresh, not in the suite): a
-    false group placed early bends a loosely held stretch, and true clusters of 25 to 50 loops are
+    false group placed early bends a loosely held stretch, and true clusters of 26 and 50 loops are
     refused against it. The alternative with the false cluster out and every earlier loser in
-    sinks under the false singles among those losers; the refused cluster alone wins. Measured
+    sinks under the false groups among those losers (2 to 10 loops each); the refused cluster alone
+    wins. Measured
     before the fix: 4 false loops, R 0.902, ATE 3.14 m; after: none, R 0.974, ATE 1.03 m (the
     oracle's 0.95 m)."""
     from lcv_replay.bench.suite import build_case_log
