@@ -55,7 +55,8 @@ The trajectory reported at the end is solved under the log's declared noise, as 
 
 A small cluster beyond every accepted loop, the only hold on the free end of the trajectory where
 any loop fits, waits one window for support; at the end of the log it is decided, and clusters
-refused by a near miss are tried once more against the final hypothesis.
+refused by a near miss, clusters deposed by a contest and clusters refused against those are tried
+once more against the final hypothesis.
 
 Cost per window: the screen and the residual tests are vectorised numpy over the constraints;
 solves are iSAM2 updates, whose cost is the part of the Bayes tree the change touches, and their
@@ -232,7 +233,7 @@ class ConsensusVerifier(WindowedVerifier):
         self._fresh_marginals: set[int] = set()  # frames whose marginal was refreshed in this window
         self.clusters: dict[int, Cluster] = {}
         self.last_fit: np.ndarray | None = None
-        self._near_misses: dict[int, float] = {}  # cluster id -> innovation / gate at its last solved refusal
+        self._near_misses: dict[int, float] = {}  # cluster id -> innovation / gate at its last solved refusal (0: deposed, or refused against a deposed cluster)
         self.innovations: list[tuple[int, float]] = []  # (loops, chi-square rise) of each cluster accepted by a solve
         self._ambiguous: list[tuple[set[int], set[int]]] = []  # contests neither side won: (incumbent, challenger) cluster ids
         self.gate_chi2 = self.plus.gate_chi2  # on innovations (see _recalibrate)
@@ -1045,6 +1046,11 @@ class ConsensusVerifier(WindowedVerifier):
             self._fate[outside[fits]] = Fate.ACCEPTED
             self._fate[misfits] = Fate.REJECTED
             self._fate[inside] = Fate.REJECTED
+            # tried again at the end of the log (:meth:`_retry_near_misses`): the deposed clusters
+            # (they fitted the hypothesis that held them) and the clusters refused against them
+            for c in self.clusters.values():
+                if c.id in incumbent or c.opponents & incumbent:
+                    self._near_misses.setdefault(c.id, 0.0)
             outcome = f"won: J lower by {-delta:.1f}"
             self._forget_ambiguous(incumbent | challenger)
         elif delta > margin:
@@ -1179,9 +1185,14 @@ class ConsensusVerifier(WindowedVerifier):
 
     def _retry_near_misses(self) -> None:
         """At the end of the log, try once more the refused loops of the clusters refused by a
-        solve with an innovation within :data:`NEAR_MISS` gates, largest first (the hypothesis
-        they were refused by held fewer loops than the final one); a cluster that fails again is
-        split into the members that fit and the others, and the first are tried alone."""
+        solve with an innovation within :data:`NEAR_MISS` gates (the hypothesis they were refused
+        by held fewer loops than the final one), of the clusters a contest deposed and of the
+        clusters refused against those (the deposed cluster may have been false, and what it
+        strained true: measured on ringCity with 500 grouped outliers, seed 9001, 23 true loops came
+        back, a true cluster deposed while a false group bent the map and two refused against that
+        group: recall 0.974 to 1.000), largest first; a
+        cluster that fails again is split into the members that fit and the others, and the first
+        are tried alone."""
         retry = [
             self.clusters[c] for c, ratio in self._near_misses.items()
             if ratio < self.NEAR_MISS and c in self.clusters and np.any(self._fate[self.clusters[c].members] == Fate.REJECTED)

@@ -121,9 +121,10 @@ def test_a_true_cluster_blocked_by_a_false_loop_wins_its_contest_on_ringcity(tmp
     false group placed early bends a loosely held stretch, and true clusters of 26 and 50 loops are
     refused against it. The alternative with the false cluster out and every earlier loser in
     sinks under the false groups among those losers (2 to 10 loops each); the refused cluster alone
-    wins. Measured
-    before the fix: 4 false loops, R 0.902, ATE 3.14 m; after: none, R 0.974, ATE 1.03 m (the
-    oracle's 0.95 m)."""
+    wins; at the end of the log, the true clusters that lost to the false group (or were deposed
+    while it bent the map) are tried again. Measured before: 4 false loops, R 0.902, ATE 3.14 m;
+    with the first change: none, R 0.974, ATE 1.03 m; with both: none, R 1.000, ATE 0.95 m (the
+    oracle's)."""
     from lcv_replay.bench.suite import build_case_log
     from lcv_replay.bench.suites import vertigo_cases
     from lcv_replay.bench.verify import load_inputs, verify_inputs
@@ -133,7 +134,7 @@ def test_a_true_cluster_blocked_by_a_false_loop_wins_its_contest_on_ringcity(tmp
     case = vertigo_cases("ringCity", [500], ["group"])[0].with_seed(9001)
     row = verify_inputs(load_inputs(build_case_log(case, data, tmp_path).path), "ilv+").row
     assert row.false_positives == 0
-    assert row.recall >= 0.97
+    assert row.recall >= 0.99
     assert row.ate_rmse_m <= 1.1 * 0.95
 
 # ----------------------------------------------------------------------------------------------
