@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Callable, Protocol, Sequence, runtime_checkable
+from typing import TYPE_CHECKING, Callable, NamedTuple, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
@@ -216,6 +216,17 @@ class AdmissionStats:
     duplicates: int = 0
 
 
+class LoopArrays(NamedTuple):
+    """Every constraint of a :class:`ConstraintHistory` as arrays, in id order (what the verifiers
+    vectorise over)."""
+
+    match: np.ndarray  # (K,) match frames
+    query: np.ndarray  # (K,) query frames
+    measured: np.ndarray  # (K, 3) T_match_query
+    information: np.ndarray  # (K, 3, 3)
+    covariance: np.ndarray  # (K, 3, 3), the inverses
+
+
 class ConstraintHistory:
     """The growing constraint history: ids in arrival order, duplicates and self-loops merged.
 
@@ -230,9 +241,22 @@ class ConstraintHistory:
         self.constraints: list[Constraint] = []
         self.stats = AdmissionStats()
         self._pairs: set[tuple[int, int]] = set()
+        self._arrays = LoopArrays(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3, 3)))
 
     def __len__(self) -> int:
         return len(self.constraints)
+
+    def arrays(self) -> LoopArrays:
+        """The constraints so far as :class:`LoopArrays` (extended by the ones admitted since the
+        last call)."""
+        start = len(self._arrays.match)
+        if start < len(self.constraints):
+            from lcv_replay.verification.pose_graph import loop_arrays
+
+            m, q, z, info = loop_arrays(self.constraints[start:], self.loop_default_information)
+            new = LoopArrays(m, q, z, info, np.linalg.inv(info))
+            self._arrays = LoopArrays(*(np.concatenate([old, more]) for old, more in zip(self._arrays, new)))
+        return self._arrays
 
     def admit(self, candidates: Sequence[LoopCandidate], num_frames: int) -> list[Constraint]:
         """Admit ``candidates`` given frames ``0..num_frames-1``; returns the new constraints."""

@@ -410,17 +410,14 @@ class ConsensusVerifier(WindowedVerifier):
 
     # ------------------------------------------------------------------ constraints
     def _sync(self) -> None:
-        """Arrays of the constraints admitted since the last window."""
-        cons = self.history.constraints
-        start = len(self._m)
-        if start == len(cons):
+        """Arrays of every constraint so far (:meth:`ConstraintHistory.arrays`), and the state of the
+        ones admitted since the last window."""
+        start = len(self._fate)
+        a = self.history.arrays()
+        self._m, self._q, self._z, self._info, self._cov = a.match, a.query, a.measured, a.information, a.covariance
+        if start == len(self._m):
             return
-        m, q, z, info = pose_graph.loop_arrays(cons[start:], self.history.loop_default_information)
-        self._m = np.concatenate([self._m, m])
-        self._q = np.concatenate([self._q, q])
-        self._z = np.concatenate([self._z, z])
-        self._info = np.concatenate([self._info, info])
-        self._cov = np.concatenate([self._cov, np.linalg.inv(info)])
+        m, q = self._m[start:], self._q[start:]
         gap_ok = (q - m) >= self.plus.min_loop_gap_frames
         self._fate = np.concatenate([self._fate, np.where(gap_ok, Fate.PENDING, Fate.INELIGIBLE).astype(np.int8)])
         self._bound = np.concatenate([self._bound, np.zeros(len(m))])

@@ -229,16 +229,9 @@ class PlusModel:
 
     # ------------------------------------------------------------------ constraints
     def _sync(self) -> None:
-        """Cache the arrays of constraints admitted since the last call."""
-        cons = self.history.constraints
-        start = len(self._m)
-        if start == len(cons):
-            return
-        m, q, z, info = pose_graph.loop_arrays(cons[start:], self.history.loop_default_information)
-        self._m = np.concatenate([self._m, m])
-        self._q = np.concatenate([self._q, q])
-        self._z = np.concatenate([self._z, z])
-        self._r = np.concatenate([self._r, np.linalg.inv(info)])
+        """The arrays of every constraint so far (:meth:`ConstraintHistory.arrays`)."""
+        a = self.history.arrays()
+        self._m, self._q, self._z, self._r = a.match, a.query, a.measured, a.covariance
 
     def eligible(self, constraints: Sequence[Constraint]) -> np.ndarray:
         self._sync()
