@@ -652,10 +652,14 @@ class RunRecorder(BaseSink):
 
 
 def consistency_snapshot(step: VerifierStep, *, rows: int = SNAPSHOT_ROWS, columns: int = SNAPSHOT_COLUMNS) -> ConsistencySnapshot:
-    """The top ``rows`` hypotheses × the deciding constraints of one step."""
+    """The top ``rows`` hypotheses that have a consistency row × the deciding constraints of one
+    step (``ilv+`` on measured loops has one row, its working hypothesis: the alternatives of its
+    contests are ranked by their cost, not solved to the end)."""
     matrix = np.asarray(step.consistency, dtype=bool)
     ids = np.array([h.id for h in step.ranking[:rows]], dtype=np.int64)
-    if matrix.ndim != 2 or not len(ids) or matrix.shape[0] < len(ids):
+    if matrix.ndim == 2:
+        ids = ids[: matrix.shape[0]]
+    if matrix.ndim != 2 or not len(ids):
         return ConsistencySnapshot(step.window_index, step.frame_index, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 0), bool))
     cols = deciding_constraints(matrix, rows=len(ids), max_columns=columns)
     return ConsistencySnapshot(step.window_index, step.frame_index, ids, cols, matrix[: len(ids)][:, cols])

@@ -87,7 +87,8 @@ class VerifierStep:
         accepted_constraint_ids: constraints consistent with the rank-1 hypothesis (accepted).
         trajectories: ``{hypothesis_id: (N, 3) [x_m, y_m, yaw_rad]}`` for the top-k hypotheses,
             N = frame_index + 1 (extended by odometry past their last optimisation).
-        consistency: ``(H, C)`` bool, rows in ``ranking`` order, columns constraint ids 0..C-1.
+        consistency: ``(H, C)`` bool, rows for the first ``H`` of ``ranking`` (``H`` may be
+            fewer), columns constraint ids 0..C-1.
         timings_s: seconds spent per stage in this step, e.g. ``{"optimise": .., "score": ..}``.
         dropped: ``(hypothesis_id, reason)`` for hypotheses dropped (optimiser failure, pruning).
         gate_chi2: the chi-square gate in force in this step, in the declared noise units

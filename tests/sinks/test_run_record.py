@@ -53,3 +53,17 @@ def test_a_constraint_flagged_ambiguous_is_neither_accepted_nor_rejected(tmp_pat
     script(recorder, tmp_path)
     assert [l.state for l in recorder.record.loops] == ["accepted", "ambiguous", "accepted"]
     assert recorder.record.counts()["ambiguous"] == 1
+
+
+def test_a_consistency_matrix_with_fewer_rows_than_the_ranking_shows_the_rows_it_has():
+    """ilv+ on measured loops gives one consistency row (its working hypothesis) and ranks its
+    contests below it: the snapshot shows that row rather than nothing (an empty panel)."""
+    from lcv_replay.sinks.run_record import consistency_snapshot
+    from lcv_replay.verification.base import HypothesisSummary, VerifierStep
+
+    ranking = tuple(HypothesisSummary(id=h, parent_id=None, constraint_ids=(), score=0, rank=r, window=0) for r, h in ((1, 7), (2, 9)))
+    step = VerifierStep(frame_index=9, window_index=0, new_constraint_ids=(0, 1, 2), new_hypotheses=ranking, generation_edges=(),
+                        accepted_constraint_ids=(0, 2), ranking=ranking, consistency=np.array([[True, False, True]]))
+    snap = consistency_snapshot(step)
+    assert snap.hypothesis_ids.tolist() == [7]
+    assert snap.consistent.shape == (1, len(snap.constraint_ids)) and snap.consistent.any()
