@@ -9,7 +9,7 @@ import pytest
 
 from lcv_replay.errors import VerificationError
 from lcv_replay.records import LoopCandidate, Pose2D
-from lcv_replay.verification.noise_scale import MAX_DOF, calibrated_gate, fit_noise
+from lcv_replay.verification.noise_scale import MAX_DOF, calibrated_gate, fit_noise, fit_odometry_level
 from lcv_replay import se2
 from lcv_replay.verification.registry import make_verifier
 from tests.shared_data import shared_path
@@ -46,6 +46,40 @@ def test_fit_ignores_unusable_values_and_needs_two():
     assert fit_noise(with_junk) == fit_noise(d2)
     with pytest.raises(VerificationError, match="at least 2"):
         fit_noise(np.array([1.0, 0.0, np.nan]))
+
+
+def _cycles(level: float, count: int, seed: int):
+    """``count`` cycle errors drawn with covariance ``loops + level * odometry`` (random
+    positive-definite parts: the odometry's a hundred times the loops')."""
+    rng = np.random.default_rng(seed)
+    a, b = rng.normal(size=(2, count, 3, 3))
+    loops, odometry = a @ np.swapaxes(a, 1, 2) * 1e-4, b @ np.swapaxes(b, 1, 2) * 1e-2
+    cov = loops + level * odometry
+    error = np.einsum("kij,kj->ki", np.linalg.cholesky(cov), rng.normal(size=(count, 3)))
+    return error, loops, odometry
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_long_cycles_measure_the_odometry_level_and_reject_a_declared_level_50_times_too_loose(seed):
+    error, loops, odometry = _cycles(0.02, 20, seed)
+    fit = fit_odometry_level(error, loops, odometry, confidence=0.9999)
+    assert 0.005 < fit.scale < 0.08
+    assert fit.significant(0.9999)
+    assert fit.cycles == 20
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_cycles_at_the_declared_level_keep_it(seed):
+    error, loops, odometry = _cycles(1.0, 20, seed)
+    fit = fit_odometry_level(error, loops, odometry, confidence=0.9999)
+    assert 0.25 < fit.scale < 4.0
+    assert not fit.significant(0.9999)
+
+
+def test_a_level_fit_needs_three_cycles():
+    error, loops, odometry = _cycles(1.0, 2, 0)
+    with pytest.raises(VerificationError, match="at least 3 cycles"):
+        fit_odometry_level(error, loops, odometry, confidence=0.9999)
 
 
 def test_gaussian_quantile_is_chi_square():
