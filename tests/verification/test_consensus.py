@@ -137,13 +137,16 @@ def test_a_true_cluster_blocked_by_a_false_loop_wins_its_contest_on_ringcity(tmp
     assert row.recall >= 0.99
     assert row.ate_rmse_m <= 1.1 * 0.95
 
-@pytest.mark.parametrize("seed", [0, 9002])
+@pytest.mark.parametrize("seed", [0, 9001, 9002])
 def test_false_loops_between_parallel_streets_of_ringcity_are_refused(tmp_path, seed):
     """Vertigo ringCity with 500 random outliers: its odometry is declared about 50 times looser
     (in variance) than the long cycles between its revisits show, and false loops between two
     parallel streets 5 to 10 m apart fit under the declared noise. Measured before the odometry's
-    level was fitted on the long cycles: 2 false loops, ATE 2.73 m (seed 0, the extended suite's)
-    and 1, ATE 3.27 m (seed 9002, drawn fresh); now none, and the oracle's ATE, 0.95 m."""
+    level was fitted on the long cycles: 2 false loops, ATE 2.73 m (seed 0, the extended suite's),
+    1, ATE 3.66 m (seed 9001) and 1, ATE 3.27 m (seed 9002; both drawn fresh); now none, and the
+    oracle's ATE, 0.95 m. Seed 9001 also needs the stiffer odometry's true clusters judged
+    soundly: with the level alone, two true clusters (31 and 51 loops) were refused by a bound
+    and a one-step solve that do not hold for clusters (recall 0.908, ATE 1.06 m)."""
     from lcv_replay.bench.suite import build_case_log
     from lcv_replay.bench.suites import vertigo_cases
     from lcv_replay.bench.verify import load_inputs, verify_inputs
