@@ -245,7 +245,8 @@ class ConsensusVerifier(WindowedVerifier):
         self._hypothesis_id = 0  # id of the working hypothesis (changes when its loop set changes)
         self._next_hypothesis_id = 1
         self._chi2_cache: tuple[int, float] | None = None
-        self._steps_cache: tuple[int, np.ndarray, np.ndarray] | None = None  # see _odometry_steps
+        self._steps_cache: tuple | None = None  # see _odometry_steps
+        self._loops_cache: tuple | None = None  # see _graph_loops_chi2
         self._odometry_chi2_cache: list[tuple[np.ndarray, int, np.ndarray]] = []  # see _odometry_chi2
         self._last_step: VerifierStep | None = None
         self._result: VerificationResult | None = None
@@ -450,16 +451,32 @@ class ConsensusVerifier(WindowedVerifier):
             return self._chi2_cache[1]
         x = self.graph.estimate()
         odometry = self._odometry_chi2(x, len(x)) / self.odometry_scale
-        total = float(odometry.sum() + self._residual_chi2(x, self.graph.loop_id_array()).sum())
+        total = float(odometry.sum() + self._graph_loops_chi2(x).sum())
         self._chi2_cache = (key, total)
         return total
 
-    def _odometry_steps(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(idx (n-1,), steps (n-1, 3))``: the odometry factors ``idx -> idx + 1`` of the first
-        ``n`` frames and their measurements (cached per ``n``: the chain only grows)."""
+    def _graph_loops_chi2(self, x: np.ndarray) -> np.ndarray:
+        """``_residual_chi2(x, graph.loop_id_array())``, with the loops' arrays gathered and the
+        cosines and sines of their measured headings computed once per loop set."""
+        ids = self.graph.loop_id_array()
+        cached = self._loops_cache
+        if cached is None or cached[0] is not ids or cached[1] is not self._z or cached[2] is not self._info:
+            z = self._z[ids]
+            cached = (ids, self._z, self._info, self._m[ids], self._q[ids], z, self._info[ids], (np.cos(z[..., 2]), np.sin(z[..., 2])))
+            self._loops_cache = cached
+        if len(ids) == 0:
+            return np.zeros(0)
+        m, q, z, info, cos_sin = cached[3:]
+        return se2.between_chi2(x, m, q, z, info, measured_cos_sin=cos_sin) / self.loop_scale
+
+    def _odometry_steps(self, n: int) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """``(idx (n-1,), steps (n-1, 3), (cos, sin) of the steps' headings)``: the odometry
+        factors ``idx -> idx + 1`` of the first ``n`` frames and their measurements (cached per
+        ``n``: the chain only grows)."""
         if self._steps_cache is None or self._steps_cache[0] != n:
-            self._steps_cache = (n, np.arange(n - 1), odometry_between(self.chain.poses[:n]))
-        return self._steps_cache[1], self._steps_cache[2]
+            steps = odometry_between(self.chain.poses[:n])
+            self._steps_cache = (n, np.arange(n - 1), steps, (np.cos(steps[..., 2]), np.sin(steps[..., 2])))
+        return self._steps_cache[1], self._steps_cache[2], self._steps_cache[3]
 
     def _odometry_chi2(self, x: np.ndarray, n: int) -> np.ndarray:
         """``(n-1,)`` chi-square of the odometry factors of the first ``n`` frames at the poses
@@ -469,8 +486,8 @@ class ConsensusVerifier(WindowedVerifier):
         for key, size, value in self._odometry_chi2_cache:
             if key is x and size == n:
                 return value
-        idx, steps = self._odometry_steps(n)
-        value = se2.between_chi2(x, idx, idx + 1, steps, self.chain.information)
+        idx, steps, cos_sin = self._odometry_steps(n)
+        value = se2.between_chi2(x, idx, idx + 1, steps, self.chain.information, measured_cos_sin=cos_sin)
         self._odometry_chi2_cache = [(x, n, value)] + self._odometry_chi2_cache[:3]
         return value
 
