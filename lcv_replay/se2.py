@@ -48,11 +48,14 @@ def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-def between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a⁻¹ ∘ b`` for ``(..., 3)`` pose arrays: with ``a = T_w_i``, ``b = T_w_j`` this is ``T_i_j``."""
+def between(a: np.ndarray, b: np.ndarray, *, cos_sin_a: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """``a⁻¹ ∘ b`` for ``(..., 3)`` pose arrays: with ``a = T_w_i``, ``b = T_w_j`` this is ``T_i_j``.
+
+    ``cos_sin_a``: ``(np.cos(a[..., 2]), np.sin(a[..., 2]))`` computed beforehand (the same values:
+    for a caller that evaluates the same ``a`` many times)."""
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    c, s = (np.cos(a[..., 2]), np.sin(a[..., 2])) if cos_sin_a is None else cos_sin_a
     dx = b[..., 0] - a[..., 0]
     dy = b[..., 1] - a[..., 1]
     out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.float64)
@@ -213,25 +216,36 @@ def invert_measurement(T_a_b: Sequence[float], information: np.ndarray) -> tuple
     return inverse(pose), ad_inv.T @ np.asarray(information, dtype=np.float64) @ ad_inv
 
 
-def between_residuals(poses: np.ndarray, i_idx: np.ndarray, j_idx: np.ndarray, measured: np.ndarray) -> np.ndarray:
-    """Residuals ``Logmap(z⁻¹ · (x_i⁻¹ x_j))`` of between factors: ``(K,)`` indices -> ``(K, 3)``."""
+def between_residuals(
+    poses: np.ndarray, i_idx: np.ndarray, j_idx: np.ndarray, measured: np.ndarray, *, measured_cos_sin: tuple[np.ndarray, np.ndarray] | None = None
+) -> np.ndarray:
+    """Residuals ``Logmap(z⁻¹ · (x_i⁻¹ x_j))`` of between factors: ``(K,)`` indices -> ``(K, 3)``
+    (``measured_cos_sin``: see :func:`between`'s ``cos_sin_a``)."""
     rel = between(poses[i_idx], poses[j_idx])
-    return logmap(between(measured, rel))
+    return logmap(between(measured, rel, cos_sin_a=measured_cos_sin))
 
 
 def between_chi2(
-    poses: np.ndarray, i_idx: np.ndarray, j_idx: np.ndarray, measured: np.ndarray, information: np.ndarray
+    poses: np.ndarray,
+    i_idx: np.ndarray,
+    j_idx: np.ndarray,
+    measured: np.ndarray,
+    information: np.ndarray,
+    *,
+    measured_cos_sin: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Whitened chi-square ``rᵀ Ω r`` of between factors (GTSAM's ``2 × factor.error``).
 
     Args:
         poses: ``(N, 3)``; ``i_idx``, ``j_idx``: ``(K,)`` frame indices; ``measured``: ``(K, 3)``
             ``T_i_j``; ``information``: ``(3, 3)`` shared or ``(K, 3, 3)`` per factor.
+        measured_cos_sin: the cosines and sines of ``measured[:, 2]``, if computed beforehand
+            (for factors evaluated at many estimates).
 
     Returns:
         ``(K,)`` chi-square values (3 degrees of freedom each).
     """
-    r = between_residuals(poses, i_idx, j_idx, measured)
+    r = between_residuals(poses, i_idx, j_idx, measured, measured_cos_sin=measured_cos_sin)
     if information.ndim == 2:
         return np.einsum("ki,ij,kj->k", r, information, r)
     return np.einsum("ki,kij,kj->k", r, information, r)

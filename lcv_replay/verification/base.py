@@ -243,6 +243,7 @@ class ConstraintHistory:
         self.stats = AdmissionStats()
         self._pairs: set[tuple[int, int]] = set()
         self._arrays = LoopArrays(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3, 3)))
+        self._measurements: list[tuple[Pose2D, np.ndarray]] = []  # per constraint: loop_measurement, validated on arrival
 
     def __len__(self) -> int:
         return len(self.constraints)
@@ -252,9 +253,12 @@ class ConstraintHistory:
         last call)."""
         start = len(self._arrays.match)
         if start < len(self.constraints):
-            from lcv_replay.verification.pose_graph import loop_arrays
-
-            m, q, z, info = loop_arrays(self.constraints[start:], self.loop_default_information)
+            # what pose_graph.loop_arrays computes, from the measurements validated on arrival
+            constraints, measurements = self.constraints[start:], self._measurements[start:]
+            m = np.array([c.match_frame for c in constraints], dtype=np.int64)
+            q = np.array([c.query_frame for c in constraints], dtype=np.int64)
+            z = np.array([np.asarray(z, dtype=np.float64) for z, _ in measurements], dtype=np.float64).reshape(-1, 3)
+            info = np.array([omega for _, omega in measurements], dtype=np.float64).reshape(-1, 3, 3)
             new = LoopArrays(m, q, z, info, np.linalg.inv(info))
             self._arrays = LoopArrays(*(np.concatenate([old, more]) for old, more in zip(self._arrays, new)))
         return self._arrays
@@ -276,9 +280,10 @@ class ConstraintHistory:
                 self.stats.duplicates += 1
                 continue
             constraint = Constraint(len(self.constraints), cand, arrival)
-            loop_measurement(constraint, self.loop_default_information)  # validates Ω
+            measurement = loop_measurement(constraint, self.loop_default_information)  # validates Ω
             self._pairs.add(cand.pair)
             self.constraints.append(constraint)
+            self._measurements.append(measurement)
             new.append(constraint)
         if unknown:
             self.stats.unknown_frames += len(unknown)

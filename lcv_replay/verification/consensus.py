@@ -232,6 +232,9 @@ class ConsensusVerifier(WindowedVerifier):
         self._hypothesis_id = 0  # id of the working hypothesis (changes when its loop set changes)
         self._next_hypothesis_id = 1
         self._chi2_cache: tuple[int, float] | None = None
+        self._steps_cache: tuple | None = None  # see _odometry_steps
+        self._loops_cache: tuple | None = None  # see _graph_loops_chi2
+        self._odometry_chi2_cache: list[tuple[np.ndarray, int, np.ndarray]] = []  # see _odometry_chi2
         self._last_step: VerifierStep | None = None
         self._result: VerificationResult | None = None
 
@@ -434,11 +437,46 @@ class ConsensusVerifier(WindowedVerifier):
         if self._chi2_cache is not None and self._chi2_cache[0] == key:
             return self._chi2_cache[1]
         x = self.graph.estimate()
-        n = len(x)
-        odometry = se2.between_chi2(x, np.arange(n - 1), np.arange(1, n), odometry_between(self.chain.poses[:n]), self.chain.information) / self.odometry_scale
-        total = float(odometry.sum() + self._residual_chi2(x, np.fromiter(self.graph.loop_ids, dtype=np.int64)).sum())
+        odometry = self._odometry_chi2(x, len(x)) / self.odometry_scale
+        total = float(odometry.sum() + self._graph_loops_chi2(x).sum())
         self._chi2_cache = (key, total)
         return total
+
+    def _graph_loops_chi2(self, x: np.ndarray) -> np.ndarray:
+        """``_residual_chi2(x, graph.loop_id_array())``, with the loops' arrays gathered and the
+        cosines and sines of their measured headings computed once per loop set."""
+        ids = self.graph.loop_id_array()
+        cached = self._loops_cache
+        if cached is None or cached[0] is not ids or cached[1] is not self._z or cached[2] is not self._info:
+            z = self._z[ids]
+            cached = (ids, self._z, self._info, self._m[ids], self._q[ids], z, self._info[ids], (np.cos(z[..., 2]), np.sin(z[..., 2])))
+            self._loops_cache = cached
+        if len(ids) == 0:
+            return np.zeros(0)
+        m, q, z, info, cos_sin = cached[3:]
+        return se2.between_chi2(x, m, q, z, info, measured_cos_sin=cos_sin) / self.loop_scale
+
+    def _odometry_steps(self, n: int) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """``(idx (n-1,), steps (n-1, 3), (cos, sin) of the steps' headings)``: the odometry
+        factors ``idx -> idx + 1`` of the first ``n`` frames and their measurements (cached per
+        ``n``: the chain only grows)."""
+        if self._steps_cache is None or self._steps_cache[0] != n:
+            steps = odometry_between(self.chain.poses[:n])
+            self._steps_cache = (n, np.arange(n - 1), steps, (np.cos(steps[..., 2]), np.sin(steps[..., 2])))
+        return self._steps_cache[1], self._steps_cache[2], self._steps_cache[3]
+
+    def _odometry_chi2(self, x: np.ndarray, n: int) -> np.ndarray:
+        """``(n-1,)`` chi-square of the odometry factors of the first ``n`` frames at the poses
+        ``x`` under the declared odometry noise (not scaled). Cached for the last few estimates
+        (``x`` is an estimate of the graph, which is never modified in place): the chi-square
+        total and :meth:`_opponents` evaluate the same estimates."""
+        for key, size, value in self._odometry_chi2_cache:
+            if key is x and size == n:
+                return value
+        idx, steps, cos_sin = self._odometry_steps(n)
+        value = se2.between_chi2(x, idx, idx + 1, steps, self.chain.information, measured_cos_sin=cos_sin)
+        self._odometry_chi2_cache = [(x, n, value)] + self._odometry_chi2_cache[:3]
+        return value
 
     def _tls_cost(self, chi2_total: float) -> float:
         """``J`` up to a constant: the chi-square plus one gate per loop not in the hypothesis."""
@@ -736,7 +774,7 @@ class ConsensusVerifier(WindowedVerifier):
         group = list(clusters)
         before = self._chi2_total()
         x_before = self.graph.estimate()
-        accepted = np.fromiter(self.graph.loop_ids, dtype=np.int64)
+        accepted = self.graph.loop_id_array()
         chi2_accepted = self._residual_chi2(x_before, accepted)
         in_graph = np.zeros(0, dtype=np.int64)
         relinearized = False
@@ -863,7 +901,7 @@ class ConsensusVerifier(WindowedVerifier):
         nearest loop end on either side of such a step: two clusters that pull a stretch of
         odometry apart may both still fit their own loops."""
         gate = self.gate_chi2
-        accepted = np.fromiter(self.graph.loop_ids, dtype=np.int64)
+        accepted = self.graph.loop_id_array()
         accepted = accepted[~np.isin(accepted, exclude)]
         if len(accepted) == 0:
             return set()
@@ -873,9 +911,7 @@ class ConsensusVerifier(WindowedVerifier):
         top = np.argsort(rise)[::-1][: self.STRAIN_TOP]
         strained = set(accepted[top[rise[top] > gate]].tolist())
         n = min(len(x_before), len(x_after))
-        steps = odometry_between(self.chain.poses[:n])
-        idx = np.arange(n - 1)
-        bend = (se2.between_chi2(x_after, idx, idx + 1, steps, self.chain.information) - se2.between_chi2(x_before, idx, idx + 1, steps, self.chain.information)) / self.odometry_scale
+        bend = (self._odometry_chi2(x_after, n) - self._odometry_chi2(x_before, n)) / self.odometry_scale
         top = np.argsort(bend)[::-1][: self.STRAIN_TOP]
         bent = np.sort(top[bend[top] > gate])
         span = self.plus.cluster_span_frames

@@ -354,6 +354,7 @@ class IncrementalGraph:
         self._odom = np.zeros((0, 3))
         self._pending_from = 0  # first frame not yet in iSAM2
         self._slots: dict[int, int] = {}  # loop id -> iSAM2 factor index
+        self._loop_id_array: np.ndarray | None = None  # loop_ids as an array (cached until the loops change)
         self._loops: dict[int, LoopFactor] = {}
         self._params = params
         self.factorization = "CHOLESKY"  # iSAM2's; QR after a Cholesky failure (see update)
@@ -369,6 +370,14 @@ class IncrementalGraph:
     def loop_ids(self) -> frozenset[int]:
         """Ids of the loops in the graph."""
         return frozenset(self._slots)
+
+    def loop_id_array(self) -> np.ndarray:
+        """``(L,)`` int64: :attr:`loop_ids` as an array, in the set's iteration order (cached until
+        the loops change; callers must not modify it)."""
+        if self._loop_id_array is None:
+            self._loop_id_array = np.fromiter(frozenset(self._slots), dtype=np.int64)
+            self._loop_id_array.flags.writeable = False
+        return self._loop_id_array
 
     def extend(self, odom_poses: np.ndarray) -> None:
         """Set the cumulative odometry to ``odom_poses`` (``(N, 3)``; the first frames must equal
@@ -418,6 +427,7 @@ class IncrementalGraph:
             if loop_id not in self._slots:
                 raise VerificationError(f"loop {loop_id} is not in the graph")
             removed.append(self._slots.pop(loop_id))
+            self._loop_id_array = None
         if factors.size() == 0 and not removed and not relinearize:
             return
         try:
@@ -438,6 +448,7 @@ class IncrementalGraph:
         for k, (loop_id, (_, loop)) in enumerate(zip(added_ids, add)):
             self._slots[loop_id] = int(new_slots[offset + k])
             self._loops[loop_id] = loop
+        self._loop_id_array = None
         for loop_id in remove:
             self._loops.pop(loop_id, None)
         self._pending_from = n
@@ -492,6 +503,7 @@ class IncrementalGraph:
         loops = sorted(self._loops.items())
         self._isam = gtsam.ISAM2(self._params)
         self._slots, self._loops = {}, {}
+        self._loop_id_array = None
         self._pending_from, self._estimate = 0, None
         factors = gtsam.NonlinearFactorGraph()
         factors.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*self._odom[0]), gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)))
@@ -509,6 +521,7 @@ class IncrementalGraph:
         for k, (loop_id, loop) in enumerate(loops):
             self._slots[loop_id] = int(new_slots[offset + k])
             self._loops[loop_id] = loop
+        self._loop_id_array = None
         self._pending_from = n
 
     def marginal_covariance(self, frame: int) -> np.ndarray:
