@@ -264,3 +264,31 @@ def test_the_scale_fit_costs_match_a_solve_per_covariance():
     np.testing.assert_allclose(costs, reference, rtol=1e-9)
     assert int(np.argmin(costs)) == int(np.argmin(reference))
 
+
+
+def _banked(verifier, ratio: float, count: int, seed: int) -> np.ndarray:
+    """Bank ``count`` synthetic pairwise cycles whose errors have covariance
+    ``ratio * L + O`` (random positive-definite parts, the loops' comparable to the odometry's)."""
+    rng = np.random.default_rng(seed)
+    a, b = rng.normal(size=(2, count, 3, 3))
+    loop, odometry = a @ np.swapaxes(a, 1, 2) * 1e-2, b @ np.swapaxes(b, 1, 2) * 1e-2
+    error = np.einsum("kij,kj->ki", np.linalg.cholesky(ratio * loop + odometry), rng.normal(size=(count, 3)))
+    verifier._pair_ids = np.zeros((count, 2), dtype=np.int64)
+    verifier._pair_error, verifier._pair_loop, verifier._pair_odometry = error, loop, odometry
+    return np.arange(count)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_loops_weight_changes_only_where_the_cycles_reject_the_one_in_force(monkeypatch, seed):
+    verifier = make_verifier("ilv+", CONFIG, odometry_information=ODOM_INFORMATION)
+    applied = []
+    monkeypatch.setattr(verifier, "_apply_scales", lambda sl, so: applied.append((sl, so)))
+    # the weight in force (1) is 1.6 times the truth: beyond SCALE_CHANGE, but 40 cycles cannot
+    # tell them apart
+    verifier._fit_scales(_banked(verifier, 1.0 / 1.6, 40, seed), independent=40)
+    assert applied == []
+    # 2,000 cycles at a tenth of it reject it
+    verifier._scales_fitted_on = 0
+    verifier._fit_scales(_banked(verifier, 0.1, 2000, seed), independent=2000)
+    assert len(applied) == 1
+    assert 0.05 < applied[0][0] < 0.2 and applied[0][1] == 1.0
