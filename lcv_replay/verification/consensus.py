@@ -67,18 +67,18 @@ final hypothesis.
 Cost per window: the screen and the residual tests are vectorised numpy over the constraints;
 solves are iSAM2 updates, whose cost is the part of the Bayes tree the change touches, and their
 number depends on the clusters of the window, not on the history (it grows mildly with the graph,
-whose loops reach further back: see ``lcv-replay bench scale``). Where the calibrated gate is tight
-and the loops all agree (Vertigo city10000: a gate of 0.3 to 0.4), the joint try of a window's
-clusters can miss its gate by 5 to 15 % with every member fitting, as can its halves: such a window
-costs 100 to 160 iSAM2 updates instead of about 15 (city10000, random outliers: windows 12 to 14, 4
-to 6 s each, about half the run), and which windows miss is decided by differences far below the
-gate. Measured: an exact undo of a failed try (a copy of the iSAM2 state) instead of removing its
-loops again, parts of a missed try sized by its rise per loop instead of halves, and skipping the
-marginal queries of clusters already implausible under the remembered marginals each made those
-windows cheaper and moved the misses to other windows (totals within the noise, or more updates:
-537 -> 643 to 662 on city10000 with grouped outliers), so none is kept. The per-window time is
-iSAM2 (updates over 40 % of it, estimates a tenth, marginal queries a fifth on city10000), the rest
-numpy.
+whose loops reach further back: see ``lcv-replay bench scale``). The cluster gate assumes the scale
+the pairwise cycles show; the innovations, which also see the odometry over long stretches, can run
+higher (Vertigo city10000: 1.3 times), so until the gate has been calibrated on 30 of them a joint
+try of hundreds of loops, every member fitting, can miss its gate and fall back to solves cluster by
+cluster; the loops' weight therefore changes only where the cycles reject the one in force (each
+change forgets the innovations). With grouped outliers, the first step of a joint try is far off,
+and what it sets aside includes true clusters the false groups strain, solved one by one then
+(city10000, grouped outliers: two windows of 3 and 7 s). Measured and not kept: an exact undo of a
+failed try (a copy of the iSAM2 state), parts of a missed try sized by its rise per loop, setting
+aside only what fits within half of the worst, and trying the set-aside clusters together again
+(each moved the slow windows elsewhere or cost recall). The per-window time is iSAM2 (updates about
+half of it, marginal queries a fifth, estimates a tenth on city10000), the rest numpy.
 """
 
 from __future__ import annotations
