@@ -253,12 +253,9 @@ class ConstraintHistory:
         last call)."""
         start = len(self._arrays.match)
         if start < len(self.constraints):
-            # what pose_graph.loop_arrays computes, from the measurements validated on arrival
-            constraints, measurements = self.constraints[start:], self._measurements[start:]
-            m = np.array([c.match_frame for c in constraints], dtype=np.int64)
-            q = np.array([c.query_frame for c in constraints], dtype=np.int64)
-            z = np.array([np.asarray(z, dtype=np.float64) for z, _ in measurements], dtype=np.float64).reshape(-1, 3)
-            info = np.array([omega for _, omega in measurements], dtype=np.float64).reshape(-1, 3, 3)
+            from lcv_replay.verification.measurements import measurement_arrays
+
+            m, q, z, info = measurement_arrays(self.constraints[start:], self._measurements[start:])  # validated on arrival
             new = LoopArrays(m, q, z, info, np.linalg.inv(info))
             self._arrays = LoopArrays(*(np.concatenate([old, more]) for old, more in zip(self._arrays, new)))
         return self._arrays

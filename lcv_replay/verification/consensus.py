@@ -741,28 +741,17 @@ class ConsensusVerifier(WindowedVerifier):
         so, and passed a trial against the final hypothesis.)"""
         x = self.graph.estimate()
         m, q = self._m[members], self._q[members]
-        r = se2.between_residuals(x, m, q, self._z[members])
-        transport = se2.adjoint_inverse(se2.between(x[m], x[q]))
-        allowed = self._rise_allowed(len(members))
-
-        def bounds() -> np.ndarray:
-            loose = self.loop_scale * self._cov[members] + 2.0 * (self._marginal[q] + transport @ self._marginal[m] @ np.swapaxes(transport, -1, -2))
-            return mahalanobis_d2(r, loose)
-
-        # the marginals in memory are upper bounds of the current ones: if they prove it, no query;
-        # else the two frames of the member nearest to proving it are queried (one member suffices)
-        d2 = bounds()
-        if d2.max() >= allowed:
-            return True
-        i = int(np.argmax(d2))
         try:
-            for frame in (int(m[i]), int(q[i])):
+            for frame in np.unique(np.concatenate([m, q])).tolist():
                 if frame not in self._fresh_marginals:
                     self._marginal[frame] = self.graph.marginal_covariance(frame)
                     self._fresh_marginals.add(frame)
         except OptimisationFailed:
             return False
-        return bool(bounds().max() >= allowed)
+        r = se2.between_residuals(x, m, q, self._z[members])
+        transport = se2.adjoint_inverse(se2.between(x[m], x[q]))
+        loose = self.loop_scale * self._cov[members] + 2.0 * (self._marginal[q] + transport @ self._marginal[m] @ np.swapaxes(transport, -1, -2))
+        return bool(np.max(mahalanobis_d2(r, loose)) >= self._rise_allowed(len(members)))
 
     #: Rounds of :meth:`_joint` (each sets aside the clusters that fit worst).
     JOINT_ROUNDS = 5

@@ -93,23 +93,26 @@ def loop_measurement(constraint: "Constraint", default_information: np.ndarray) 
 def loop_arrays(
     constraints: Sequence["Constraint"], default_information: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Constraints as arrays for vectorised chi-square.
+    """Constraints as arrays for vectorised chi-square (each measurement validated:
+    :func:`loop_measurement`).
 
     Returns:
         ``(match_idx (C,), query_idx (C,), measured (C, 3), information (C, 3, 3))``.
     """
-    n = len(constraints)
-    match_idx = np.empty(n, dtype=np.int64)
-    query_idx = np.empty(n, dtype=np.int64)
-    measured = np.empty((n, 3), dtype=np.float64)
-    info = np.empty((n, 3, 3), dtype=np.float64)
-    for k, c in enumerate(constraints):
-        z, omega = loop_measurement(c, default_information)
-        match_idx[k], query_idx[k] = c.match_frame, c.query_frame
-        measured[k] = z
-        info[k] = omega
-    return match_idx, query_idx, measured, info
+    return measurement_arrays(constraints, [loop_measurement(c, default_information) for c in constraints])
 
+
+def measurement_arrays(
+    constraints: Sequence["Constraint"], measurements: Sequence[tuple[Pose2D, np.ndarray]]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`loop_arrays` from the measurements of ``constraints`` already validated
+    (:func:`loop_measurement`'s results, in the same order)."""
+    n = len(constraints)
+    match_idx = np.array([c.match_frame for c in constraints], dtype=np.int64)
+    query_idx = np.array([c.query_frame for c in constraints], dtype=np.int64)
+    measured = np.array([np.asarray(z, dtype=np.float64) for z, _ in measurements], dtype=np.float64).reshape(n, 3)
+    info = np.array([omega for _, omega in measurements], dtype=np.float64).reshape(n, 3, 3)
+    return match_idx, query_idx, measured, info
 
 
 def loop_chi2(poses: np.ndarray, constraint: "Constraint", information: np.ndarray) -> float:

@@ -215,18 +215,6 @@ def loop_factor(constraint: "Constraint", default_information: np.ndarray) -> Lo
     return LoopFactor(constraint.match_frame, constraint.query_frame, np.asarray(measured, dtype=np.float64), omega)
 
 
-def loop_arrays(constraints: Sequence["Constraint"], default_information: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The loop factors of ``constraints`` as arrays: match frames ``(K,)``, query frames ``(K,)``,
-    measurements ``(K, 3)`` and information matrices ``(K, 3, 3)`` (what the verifiers vectorise over)."""
-    factors = [loop_factor(c, default_information) for c in constraints]
-    return (
-        np.array([f.match_frame for f in factors], dtype=np.int64),
-        np.array([f.query_frame for f in factors], dtype=np.int64),
-        np.array([f.measured for f in factors], dtype=np.float64).reshape(-1, 3),
-        np.array([f.information for f in factors], dtype=np.float64).reshape(-1, 3, 3),
-    )
-
-
 def build_reduced_graph(chain: OdometryChain, node_frames: np.ndarray, loops: Sequence[LoopFactor]):
     """Pose graph on ``node_frames`` only: the odometry between consecutive nodes is composed
     into one factor (exact measurement ``O_a⁻¹ O_b``, covariance from
