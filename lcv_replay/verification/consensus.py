@@ -733,14 +733,25 @@ class ConsensusVerifier(WindowedVerifier):
         """Whether the cluster's innovation must exceed what :meth:`_trial` accepts
         (:meth:`_rise_allowed`): adding loops never lowers the chi-square at the optimum, so the
         innovation of the cluster is at least that of any one member, which is bounded from below
-        under a looser prediction than the graph's: twice the sum of the current marginal
-        covariances of its two frames (iSAM2 queries, a few milliseconds each; the remembered ones
-        are refreshed). (A cluster whose every member fails one gate alone may still pass: the
+        under a looser prediction than the graph's: twice the sum of the marginal covariances of
+        its two frames, first those in memory (upper bounds of the current ones: no query), then,
+        unless they prove it, the current ones (iSAM2 queries, a few milliseconds each; the
+        remembered ones are refreshed, and the screen uses them later). (A cluster whose every member fails one gate alone may still pass: the
         first loop of a run bends the map, the others then fit. Measured on ringCity with 500
         random outliers, seed 9001: a true cluster of 31 loops after a long open stretch was refused
         so, and passed a trial against the final hypothesis.)"""
         x = self.graph.estimate()
         m, q = self._m[members], self._q[members]
+        r = se2.between_residuals(x, m, q, self._z[members])
+        transport = se2.adjoint_inverse(se2.between(x[m], x[q]))
+        allowed = self._rise_allowed(len(members))
+
+        def bound() -> float:
+            loose = self.loop_scale * self._cov[members] + 2.0 * (self._marginal[q] + transport @ self._marginal[m] @ np.swapaxes(transport, -1, -2))
+            return float(np.max(mahalanobis_d2(r, loose)))
+
+        if bound() >= allowed:  # the marginals in memory, upper bounds of the current ones, suffice
+            return True
         try:
             for frame in np.unique(np.concatenate([m, q])).tolist():
                 if frame not in self._fresh_marginals:
@@ -748,10 +759,7 @@ class ConsensusVerifier(WindowedVerifier):
                     self._fresh_marginals.add(frame)
         except OptimisationFailed:
             return False
-        r = se2.between_residuals(x, m, q, self._z[members])
-        transport = se2.adjoint_inverse(se2.between(x[m], x[q]))
-        loose = self.loop_scale * self._cov[members] + 2.0 * (self._marginal[q] + transport @ self._marginal[m] @ np.swapaxes(transport, -1, -2))
-        return bool(np.max(mahalanobis_d2(r, loose)) >= self._rise_allowed(len(members)))
+        return bound() >= allowed
 
     #: Rounds of :meth:`_joint` (each sets aside the clusters that fit worst).
     JOINT_ROUNDS = 5
