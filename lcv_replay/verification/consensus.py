@@ -105,7 +105,7 @@ from lcv_replay.verification.config import VerificationConfig
 from lcv_replay.verification.consistency import Cycles, connected_labels, mahalanobis_d2, neighbour_pairs
 from lcv_replay.verification.incremental import WindowedVerifier
 from lcv_replay.verification.noise_scale import LevelFit, NoiseFit, fit_noise_quantiles, fit_odometry_level, student_t_costs
-from lcv_replay.verification.measurements import OdometryChain, odometry_between, random_walk_prefix
+from lcv_replay.verification.measurements import OdometryChain, odometry_between
 from lcv_replay.verification.pose_graph import IncrementalGraph, LoopFactor, OptimisationFailed
 
 log = logging.getLogger(__name__)
@@ -736,8 +736,9 @@ class ConsensusVerifier(WindowedVerifier):
         under a looser prediction than the graph's: twice the sum of the marginal covariances of
         its two frames, first those in memory (upper bounds of the current ones: no query), then,
         unless they prove it, the current ones (iSAM2 queries, a few milliseconds each; the
-        remembered ones are refreshed, and the screen uses them later). (A cluster whose every member fails one gate alone may still pass: the
-        first loop of a run bends the map, the others then fit. Measured on ringCity with 500
+        remembered ones are refreshed, and the screen uses them later). (A cluster whose every
+        member fails one gate alone may still pass: the first loop of a run bends the map, the
+        others then fit. Measured on ringCity with 500
         random outliers, seed 9001: a true cluster of 31 loops after a long open stretch was refused
         so, and passed a trial against the final hypothesis.)"""
         x = self.graph.estimate()
@@ -1238,23 +1239,22 @@ class ConsensusVerifier(WindowedVerifier):
         one Gauss-Newton step, without a solve: ringCity with 500 random outliers, seed 9001, a true
         cluster of 51 loops), largest first; a cluster that fails again is split into the members
         that fit and the others, and the first are tried alone."""
-        retry = [
-            self.clusters[c] for c, ratio in self._near_misses.items()
+        retry = {
+            c: self.clusters[c] for c, ratio in self._near_misses.items()
             if ratio < self.NEAR_MISS and c in self.clusters and np.any(self._fate[self.clusters[c].members] == Fate.REJECTED)
-        ]
+        }
         # ... and the refused clusters of frontier_min_loops loops or more whose members mostly
         # fit the final solution already (refused on a bound or on one Gauss-Newton step, which
         # do not solve; a false group claims places the final map does not have)
         x = self.graph.estimate()
         rejected = self._ids(Fate.REJECTED)
         for c in np.unique(self._cluster_of[rejected]).tolist():
-            cluster = self.clusters.get(int(c))
-            if cluster is None or cluster in retry:
+            if c in retry or c not in self.clusters:
                 continue
-            members = cluster.members[self._fate[cluster.members] == Fate.REJECTED]
+            members = self.clusters[c].members[self._fate[self.clusters[c].members] == Fate.REJECTED]
             if len(members) >= self.plus.frontier_min_loops and np.median(self._residual_chi2(x, members)) < self.gate_chi2:
-                retry.append(cluster)
-        for cluster in sorted(retry, key=lambda c: (-c.size, c.id)):
+                retry[c] = self.clusters[c]
+        for cluster in sorted(retry.values(), key=lambda c: (-c.size, c.id)):
             members = cluster.members[self._fate[cluster.members] == Fate.REJECTED]
             self._fate[members] = Fate.PENDING
             ok, _ = self._trial(members)
