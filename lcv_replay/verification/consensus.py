@@ -422,8 +422,9 @@ class ConsensusVerifier(WindowedVerifier):
     def _ids(self, fate: Fate) -> np.ndarray:
         return np.flatnonzero(self._fate == fate)
 
-    def _factor(self, c: int) -> LoopFactor:
-        return LoopFactor(int(self._m[c]), int(self._q[c]), self._z[c], self._info[c] / self.loop_scale)
+    def _factor(self, c: int, loop_scale: float | None = None) -> LoopFactor:
+        """Loop ``c``'s factor under the loops' scale in force (or ``loop_scale``)."""
+        return LoopFactor(int(self._m[c]), int(self._q[c]), self._z[c], self._info[c] / (self.loop_scale if loop_scale is None else loop_scale))
 
     # ------------------------------------------------------------------ statistics
     def _residual_chi2(self, x: np.ndarray, ids: np.ndarray) -> np.ndarray:
@@ -1332,7 +1333,8 @@ class ConsensusVerifier(WindowedVerifier):
             near.append((residual, c))
         if not near:
             return
-        self._apply_scales(self.loop_scale, looser)
+        if not self._apply_scales(self.loop_scale, looser):
+            return
         for _, c in sorted(near):
             members = np.array([c], dtype=np.int64)
             self._fate[members] = Fate.PENDING
@@ -1414,23 +1416,31 @@ class ConsensusVerifier(WindowedVerifier):
         if 2.0 * (now - float(values[k])) > special.chdtri(1, 1.0 - self.plus.calibration_confidence):
             self._apply_scales(sl, so)
 
-    def _apply_scales(self, loop_scale: float, odometry_scale: float) -> None:
+    def _apply_scales(self, loop_scale: float, odometry_scale: float) -> bool:
         """Use new noise scales everywhere: the graph is rebuilt with the corrected noise (from its
         current estimate), the remembered marginals are scaled conservatively, and the
-        innovations measured under the old scales are forgotten."""
+        innovations measured under the old scales are forgotten. Returns whether they were
+        applied: if GTSAM cannot solve the rebuilt graph, the scales, the graph and the rest stay
+        as they were (a warning is logged)."""
         log.debug("ilv+: noise scales loops %.3g -> %.3g, odometry %.3g -> %.3g", self.loop_scale, loop_scale, self.odometry_scale, odometry_scale)
         growth = max(loop_scale / self.loop_scale, odometry_scale / self.odometry_scale)
         x = self.graph.estimate().copy()
+        graph = IncrementalGraph(self.chain.information / odometry_scale)
+        graph.extend(self.chain.poses[: len(x)])
+        accepted = self._ids(Fate.ACCEPTED)
+        try:
+            graph.restart(x, loops=[(int(c), self._factor(int(c), loop_scale)) for c in accepted])
+            graph.update(relinearize=True)
+        except OptimisationFailed as exc:
+            log.warning("ilv+: the noise scales were not changed (%s)", exc.message)
+            return False
         self.loop_scale, self.odometry_scale = float(loop_scale), float(odometry_scale)
         self._marginal = self._marginal * max(growth, 1.0)
         self.innovations.clear()
         self._retired_updates += self.graph.updates
-        self.graph = IncrementalGraph(self.chain.information / self.odometry_scale)
-        self.graph.extend(self.chain.poses[: len(x)])
-        accepted = self._ids(Fate.ACCEPTED)
-        self.graph.restart(x, loops=[(int(c), self._factor(int(c))) for c in accepted])
-        self.graph.update(relinearize=True)
+        self.graph = graph
         self._chi2_cache = None
+        return True
 
     #: Long cycles (between consecutive accepted clusters) needed before the odometry's level is
     #: fitted on them (the likelihood-ratio test decides whether they suffice), and the most

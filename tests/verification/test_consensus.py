@@ -334,3 +334,26 @@ def test_the_loops_weight_changes_only_where_the_cycles_reject_the_one_in_force(
     verifier._fit_scales(_banked(verifier, 0.1, 2000, seed), independent=2000)
     assert len(applied) == 1
     assert 0.05 < applied[0][0] < 0.2 and applied[0][1] == 1.0
+
+
+def test_noise_scales_that_gtsam_cannot_solve_leave_the_verifier_as_it_was(monkeypatch):
+    """A rebuild under new noise scales that GTSAM fails (the end-of-log retry at the looser level
+    runs one on the whole graph) changes nothing: the scales, the graph and its solution stay, and
+    the run goes on."""
+    from lcv_replay.verification import pose_graph
+
+    world = circle_world(frames_per_lap=200, laps=2.0, true_every=4, num_false=0, yaw_bias_rad=0.0002)
+    true = [_loop(world, q, q - 200) for q in range(205, 400, 4)]
+    verifier, _, result = _run(world, true)
+    graph, x = verifier.graph, verifier.graph.estimate().copy()
+    scales = (verifier.loop_scale, verifier.odometry_scale)
+
+    def fail(self, initial, loops=None):
+        raise pose_graph.OptimisationFailed("iSAM2 update failed: Indeterminant linear system")
+
+    monkeypatch.setattr(pose_graph.IncrementalGraph, "restart", fail)
+    assert verifier._apply_scales(0.5, 0.5) is False
+    assert (verifier.loop_scale, verifier.odometry_scale) == scales
+    assert verifier.graph is graph
+    np.testing.assert_array_equal(verifier.graph.estimate(), x)
+    assert len(result.accepted_constraint_ids) == len(true)
