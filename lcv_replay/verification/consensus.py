@@ -1268,15 +1268,21 @@ class ConsensusVerifier(WindowedVerifier):
             if len(members) >= self.plus.frontier_min_loops and np.median(self._residual_chi2(x, members)) < self.gate_chi2:
                 retry[c] = self.clusters[c]
         for cluster in sorted(retry.values(), key=lambda c: (-c.size, c.id)):
-            members = cluster.members[self._fate[cluster.members] == Fate.REJECTED]
-            self._fate[members] = Fate.PENDING
+            self._try_again(cluster.members[self._fate[cluster.members] == Fate.REJECTED])
+
+    def _try_again(self, members: np.ndarray) -> bool:
+        """Try refused ``members`` once more against the working hypothesis (:meth:`_trial`); if
+        they fail, the members that fit the failed solution are tried alone. Returns whether any
+        joined."""
+        self._fate[members] = Fate.PENDING
+        ok, _ = self._trial(members)
+        fit = self.last_fit
+        if not ok and fit is not None and 0 < fit.sum() < len(members):
+            self._fate[members[~fit]] = Fate.REJECTED
+            members = members[fit]
             ok, _ = self._trial(members)
-            fit = self.last_fit
-            if not ok and fit is not None and 0 < fit.sum() < len(members):
-                self._fate[members[~fit]] = Fate.REJECTED
-                members = members[fit]
-                ok, _ = self._trial(members)
-            self._fate[members] = Fate.ACCEPTED if ok else Fate.REJECTED
+        self._fate[members] = Fate.ACCEPTED if ok else Fate.REJECTED
+        return ok
 
     def _retry_under_looser_level(self) -> None:
         """At the end of the log, where the gate cuts the tail the innovations were fitted with
@@ -1319,7 +1325,8 @@ class ConsensusVerifier(WindowedVerifier):
         rejected = self._ids(Fate.REJECTED)
         x = self.graph.estimate()
         chi2 = self._residual_chi2(x, rejected)
-        rejected, chi2 = rejected[chi2 < self.NEAR_MISS * self.gate_chi2], chi2[chi2 < self.NEAR_MISS * self.gate_chi2]
+        within = chi2 < self.NEAR_MISS * self.gate_chi2
+        rejected, chi2 = rejected[within], chi2[within]
         near = []
         for c, residual in zip(rejected.tolist(), chi2.tolist()):
             if residual >= bound:  # the residual bounds the innovation from above
@@ -1336,11 +1343,8 @@ class ConsensusVerifier(WindowedVerifier):
         if not self._apply_scales(self.loop_scale, looser):
             return
         for _, c in sorted(near):
-            members = np.array([c], dtype=np.int64)
-            self._fate[members] = Fate.PENDING
-            ok, _ = self._trial(members)
+            ok = self._try_again(np.array([c], dtype=np.int64))
             log.debug("ilv+: under the odometry level %.3g, loop %d %s", looser, c, "accepted" if ok else "refused")
-            self._fate[members] = Fate.ACCEPTED if ok else Fate.REJECTED
 
     # ------------------------------------------------------------------ 6. calibration
     #: A fit of the cycles' statistics with fewer degrees of freedom than this is heavy-tailed:
