@@ -149,6 +149,7 @@ def build_graph(
     *,
     loop_default_information: np.ndarray,
     robust: RobustKernel | None = None,
+    odometry_robust: RobustKernel | None = None,
 ):
     """Pose graph of odometry plus ``constraints`` (see the module docstring for factor order).
 
@@ -158,6 +159,8 @@ def build_graph(
         constraints: loop constraints with both frames in ``0..N-1``.
         loop_default_information: ``(3, 3)`` information of a candidate that carries none.
         robust: kernel wrapped around every loop factor, or ``None`` for plain Gaussian.
+        odometry_robust: kernel wrapped around every odometry factor (heavy-tailed odometry:
+            wheel slips, poor scan matches), or ``None`` for plain Gaussian.
 
     Returns:
         ``gtsam.NonlinearFactorGraph`` with ``N + len(constraints)`` factors.
@@ -173,6 +176,8 @@ def build_graph(
     graph = gtsam.NonlinearFactorGraph()
     graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*odom[0]), gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)))
     odom_noise = information_to_noise(odom_information, what="odometry")
+    if odometry_robust is not None:
+        odom_noise = gtsam.noiseModel.Robust.Create(odometry_robust.estimator(), odom_noise)
     for k, step in enumerate(odometry_between(odom)):
         graph.add(gtsam.BetweenFactorPose2(k, k + 1, gtsam.Pose2(*step), odom_noise))
     for c in constraints:
