@@ -803,8 +803,10 @@ class ConsensusVerifier(WindowedVerifier):
         every member (residual below the gate), breaks no accepted loop and the chi-square rises
         by less than the gate for their size; otherwise set aside the clusters that fit worst
         (:meth:`_worst`) and judge the rest again, for at most :data:`JOINT_ROUNDS` rounds. A
-        round whose one Gauss-Newton step is already far off is undone exactly, without
-        relinearising. Returns the clusters still to verify one by one."""
+        round whose one Gauss-Newton step is already far off is not relinearised: its worst
+        clusters are taken out at the same linearisation point, which leaves exactly the one step
+        of the rest, and a try given up there is undone exactly. Returns the clusters still to
+        verify one by one."""
         aside: list[Cluster] = []
         group = list(clusters)
         before = self._chi2_total()
@@ -820,14 +822,19 @@ class ConsensusVerifier(WindowedVerifier):
                 members = np.concatenate([self._pending_members(c) for c in group])
                 gate_k = self.cluster_gate(len(members))
                 if not relinearized:
-                    self._apply(add=members, relinearize=False)
+                    new = members[~np.isin(members, in_graph)]
+                    if len(new):
+                        self._apply(add=new, relinearize=False)
                     in_graph = members
                     if self._chi2_total() - before >= self.GROSS_FACTOR * gate_k:
                         worst = self._worst(group, self.graph.estimate())
-                        self._apply(remove=members, relinearize=False)  # undone exactly
-                        in_graph = np.zeros(0, dtype=np.int64)
                         if not worst or len(worst) == len(group):
                             break
+                        # at the same linearisation point, taking the worst out leaves exactly the
+                        # one step of the rest (no second elimination of the whole group)
+                        out = np.concatenate([self._pending_members(c) for c in worst])
+                        self._apply(remove=out, relinearize=False)
+                        in_graph = in_graph[~np.isin(in_graph, out)]
                         group = [c for c in group if c not in worst]
                         aside += worst
                         continue
@@ -848,8 +855,9 @@ class ConsensusVerifier(WindowedVerifier):
                 group = [c for c in group if c not in worst]
                 aside += worst
             if len(in_graph):
-                self._apply(remove=in_graph)
-                self._restore(before, x_before)
+                self._apply(remove=in_graph, relinearize=relinearized)  # unrelinearised: undone exactly
+                if relinearized:
+                    self._restore(before, x_before)
         except OptimisationFailed as exc:
             log.warning("ilv+: joint verification failed (%s); verifying one by one", exc.message)
             self._rebuild()
