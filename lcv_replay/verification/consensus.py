@@ -1378,7 +1378,7 @@ class ConsensusVerifier(WindowedVerifier):
     SLIP_KERNEL_SCALE = 1.0
     #: Levenberg-Marquardt's relative error tolerance in :meth:`_retry_across_slips` (GTSAM's
     #: default 1e-5 took 58 to 61 iterations on generated worlds of 1k to 5k poses, 17 to 23 with
-    #: this one, and the same loops joined on Intel and three generated worlds).
+    #: this one; the same loops joined on Intel and three generated worlds).
     SLIP_SOLVE_TOLERANCE = 1e-3
 
     def _retry_across_slips(self) -> None:
@@ -1400,13 +1400,13 @@ class ConsensusVerifier(WindowedVerifier):
         Gaussian test, even under the looser odometry level (:meth:`_retry_under_looser_level`).
         Measured on Intel (six cases): three true loops from frame 698, at 1.7 to 2.3 gates at
         the Gaussian solution, fit the robust one at 0.25 to 0.4 gates; the nearest false loop
-        of 16 heavy-tailed, Manhattan, Intel and city10000 cases looked at fits it at 2.6 gates or more.
+        of 16 heavy-tailed, Manhattan, Intel and city10000 cases looked at fits it at 2.6 gates
+        or more.
         That the loop fits before it moves anything matters: under Cauchy odometry a slip costs
         little (a 100-sigma step adds about 9 to the cost), and a trial alone would let a false
         loop bend the map to itself."""
-        bound = self._tail_bound()
         rejected = self._ids(Fate.REJECTED)
-        if bound is None or len(rejected) == 0:
+        if self._tail_bound() is None or len(rejected) == 0:
             return
         x = self.graph.estimate()
         rejected = rejected[self._residual_chi2(x, rejected) < self.NEAR_MISS * self.gate_chi2]
@@ -1425,10 +1425,11 @@ class ConsensusVerifier(WindowedVerifier):
         joined = fits
         if self._slip_trial(accepted, fits, base) is None:
             joined = np.zeros(0, dtype=np.int64)
-            for c in fits.tolist() if len(fits) > 1 else []:
-                solution = self._slip_trial(np.concatenate([accepted, joined]), np.array([c], dtype=np.int64), base)
-                if solution is not None:
-                    joined, base = np.append(joined, c), solution
+            if len(fits) > 1:  # together they failed: one by one, best fitting first
+                for c in fits.tolist():
+                    solution = self._slip_trial(np.concatenate([accepted, joined]), np.array([c], dtype=np.int64), base)
+                    if solution is not None:
+                        joined, base = np.append(joined, c), solution
         if len(joined):
             log.debug("ilv+: across odometry slips, loops %s accepted", joined.tolist())
             self._fate[joined] = Fate.ACCEPTED
