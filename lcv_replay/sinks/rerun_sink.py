@@ -731,6 +731,8 @@ class RerunSink(BaseSink):
         if step.ranking:
             parts.append(f"rank 1 H{step.ranking[0].id} (score {step.ranking[0].score})")
         rec.log(bp.EVENTS, rr.TextLog(", ".join(parts), level="FINAL" if update.final else "WINDOW"))
+        for note in step.notes:
+            rec.log(bp.EVENTS, rr.TextLog(f"frame {frame}: {note}", level="NOTE"))
 
 
     def _log_metrics(self, update: StepUpdate) -> None:

@@ -97,6 +97,9 @@ class VerifierStep:
             mutually consistent loops that compete with other loops and explain the data about as
             well (``ilv+``). They are flagged, never accepted (disjoint from
             ``accepted_constraint_ids``); empty for methods without such a verdict.
+        notes: what the step decided that its ranking does not show, one sentence each (``ilv+``:
+            the loops accepted at the end of the log by a second opinion, and which one); the
+            Rerun recording lists them among its events.
     """
 
     frame_index: int
@@ -112,6 +115,7 @@ class VerifierStep:
     dropped: tuple[tuple[int, str], ...] = ()
     gate_chi2: float | None = None
     ambiguous_constraint_ids: tuple[int, ...] = ()
+    notes: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -333,12 +333,21 @@ class ConsensusVerifier(WindowedVerifier):
         t = time.perf_counter()
         self._refine(contests, budget)
         self._audit()
+        notes: list[str] = []
         if final:
             if np.any(self._fate == Fate.PENDING):  # sent back to the pool in this last window
                 self._verify(self._form_clusters(self._screen()), final=True)
-            self._retry_near_misses()
-            self._retry_under_looser_level()
-            self._retry_across_slips()
+            for retry, how in (
+                (self._retry_near_misses, "tried once more against the final map"),
+                (self._retry_under_looser_level, "under the looser odometry level"),
+                (self._retry_across_slips, "across odometry slips (under heavy-tailed odometry)"),
+            ):
+                before = self._fate == Fate.ACCEPTED
+                retry()
+                joined = np.flatnonzero((self._fate == Fate.ACCEPTED) & ~before)
+                if len(joined):
+                    notes.append(f"end of the log: {len(joined)} refused loop{'s' if len(joined) > 1 else ''} accepted {how}: " + ", ".join(
+                        f"{c} ({self._q[c]}↔{self._m[c]})" for c in joined[:12].tolist()) + (" …" if len(joined) > 12 else ""))
         timings["refine"] = time.perf_counter() - t
 
 
@@ -398,6 +407,7 @@ class ConsensusVerifier(WindowedVerifier):
             dropped=tuple(dropped),
             gate_chi2=self.gate_chi2,
             ambiguous_constraint_ids=tuple(int(i) for i in self._ids(Fate.AMBIGUOUS)),
+            notes=tuple(notes),
         )
         self._window += 1
         self._stepped_frames = len(self.chain)

@@ -71,6 +71,9 @@ def test_ranks_constraints_consistency_and_events(scripted):
     assert "frame 29: 1 no longer accepted: 1 (15↔8)" in texts
     assert "frame 29: rank 1 H3 (score 2) → H5 (score 3)" in texts
     assert levels.count("WINDOW") == 1 and levels.count("FINAL") == 1 and levels.count("WRONG") == 1
+    # the verifier's notes (ilv+: what an end-of-log second opinion accepted) are events too
+    assert levels.count("NOTE") == 1
+    assert "frame 29: end of the log: 1 refused loop accepted across odometry slips (under heavy-tailed odometry): 2 (25↔3)" in texts
     window = next(t for t, level in zip(texts, levels) if level == "WINDOW")
     assert window.startswith("frame 19: window 0 ends, 2 accepted (+2), 1 false, 0 missed, P 0.500 R 1.000")
     legend = last_row(tables[bp.LEGEND], "TextDocument:text")[0]

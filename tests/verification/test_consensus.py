@@ -186,6 +186,11 @@ def test_true_loops_across_an_odometry_slip_on_intel_are_accepted_at_the_end(tmp
     assert {(698, 75), (698, 194), (698, 559)} <= accepted
     assert out.row.false_positives == 0
     assert out.row.recall == 1.0
+    # the recording says which second opinion took them
+    notes = out.result.last_step.notes
+    slips = next(n for n in notes if "across odometry slips" in n)
+    assert all(f"(698↔{m})" in slips for m in (75, 194, 559))
+    assert any("under the looser odometry level" in n and "(898↔74)" in n for n in notes)
 
 
 @pytest.mark.slow
