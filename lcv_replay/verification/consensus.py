@@ -777,9 +777,10 @@ class ConsensusVerifier(WindowedVerifier):
         transport = se2.adjoint_inverse(se2.between(x[m], x[q]))
         allowed = self._rise_allowed(len(members))
 
-        def bounds() -> np.ndarray:
-            loose = self.loop_scale * self._cov[members] + 2.0 * (self._marginal[q] + transport @ self._marginal[m] @ np.swapaxes(transport, -1, -2))
-            return mahalanobis_d2(r, loose)
+        def bounds(k=slice(None)) -> np.ndarray:  # of the members ``k`` (default: all)
+            t = transport[k]
+            loose = self.loop_scale * self._cov[members[k]] + 2.0 * (self._marginal[q[k]] + t @ self._marginal[m[k]] @ np.swapaxes(t, -1, -2))
+            return mahalanobis_d2(r[k], loose)
 
         remembered = bounds()
         if remembered.max() >= allowed:  # the marginals in memory, upper bounds of the current ones, suffice
@@ -791,7 +792,7 @@ class ConsensusVerifier(WindowedVerifier):
                     if frame not in self._fresh_marginals:
                         self._marginal[frame] = self.graph.marginal_covariance(frame)
                         self._fresh_marginals.add(frame)
-                    if bounds()[k] >= allowed:
+                    if bounds([k])[0] >= allowed:
                         return True
         except OptimisationFailed:
             return False
@@ -1446,7 +1447,8 @@ class ConsensusVerifier(WindowedVerifier):
             log.warning("ilv+: the solution under heavy-tailed odometry failed (%s); no loop retried across slips", exc.message)
             return
         chi2 = self._residual_chi2(base.poses, rejected)
-        fits = rejected[chi2 < self.gate_chi2][np.argsort(chi2[chi2 < self.gate_chi2])]
+        order = np.argsort(chi2)
+        fits = rejected[order][chi2[order] < self.gate_chi2]  # best fitting first
         if len(fits) == 0:
             return
         joined = fits
