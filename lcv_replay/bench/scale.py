@@ -7,30 +7,41 @@ the suite builds them (cached in its work folder), every method runs on each, an
   reference (GNC-TLS, DCS), and precision/recall;
 * per window of the incremental method: the time of that window against the number of
   constraints verified before it (the history), so a curve that stays flat after warm-up shows a
-  cost per window that does not grow with the history.
+  cost per window that does not grow with the history;
+* per window, side by side, the cost of the back end alone (:func:`backend_window_times`): iSAM2
+  absorbing that window's frames and the loops the method accepted in it, once, to convergence.
+  Its time grows with the graph (a loop into old frames re-eliminates the Bayes tree between
+  them); the ratio of the two is what the verification costs on top of the smoother the robot
+  runs anyway.
 """
 
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
 from lcv_replay.bench.suites import SuiteCase, world_cases
 from lcv_replay.verification.config import VerificationConfig
 
+if TYPE_CHECKING:
+    from lcv_replay.verification.base import Constraint, VerifierStep
+
 
 @dataclass(frozen=True)
 class WindowTime:
-    """One window of an incremental run: constraints admitted before it, its wall time."""
+    """One window of an incremental run: constraints admitted before it, its wall time, and the
+    wall time of the back end alone on the same window (:func:`backend_window_times`)."""
 
     window: int
     history_constraints: int
     new_constraints: int
     time_s: float
+    backend_time_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -86,16 +97,60 @@ def scale_cases(poses: Sequence[int], *, layout: str, noise: str, mode: str, out
     return tuple(cases)
 
 
-def window_times(steps, window_times_s: Sequence[float]) -> tuple[WindowTime, ...]:
+def window_times(steps, window_times_s: Sequence[float], backend_times_s: Sequence[float] | None = None) -> tuple[WindowTime, ...]:
     """Pair each step's wall time (from :func:`~lcv_replay.bench.verify.feed`) with the history it
-    started from (constraints admitted before its window)."""
+    started from (constraints admitted before its window) and, if given, the back end's time on
+    the same window."""
     out = []
     history = 0
     for k, (step, seconds) in enumerate(zip(steps, window_times_s)):
         new = len(step.new_constraint_ids)
-        out.append(WindowTime(k, history, new, float(seconds)))
+        backend = None if backend_times_s is None else float(backend_times_s[k])
+        out.append(WindowTime(k, history, new, float(seconds), backend))
         history += new
     return tuple(out)
+
+
+def backend_window_times(
+    odometry: np.ndarray,
+    odometry_information: np.ndarray,
+    loop_default_information: np.ndarray,
+    constraints: Sequence["Constraint"],
+    steps: Sequence["VerifierStep"],
+) -> tuple[float, ...]:
+    """The reference for the cost of each window: the back end alone. An iSAM2 graph
+    (:class:`~lcv_replay.verification.pose_graph.IncrementalGraph`, the one ``ilv+`` keeps its
+    working hypothesis in) absorbs, step by step, the frames up to the step's last one and the
+    change of the accepted loops since the previous step (added and removed), in one update
+    relinearised to convergence, then computes the estimate. That is what a smoother fed only the
+    verified loops pays per window; it does no verification.
+
+    Args:
+        odometry: ``(N, 3)`` cumulative odometry of the log.
+        odometry_information: ``(3, 3)`` information of one odometry step.
+        loop_default_information: ``(3, 3)`` information of a loop that carries none.
+        constraints: the run's constraints (``VerificationResult.constraints``), by id.
+        steps: the run's steps, the last one included.
+
+    Returns:
+        The wall time of each step's update, in seconds.
+    """
+    from lcv_replay.verification.pose_graph import IncrementalGraph, loop_factor
+
+    by_id = {c.id: c for c in constraints}
+    graph = IncrementalGraph(odometry_information)
+    held: set[int] = set()
+    times = []
+    for step in steps:
+        start = time.perf_counter()
+        graph.extend(odometry[: step.frame_index + 1])
+        now = set(step.accepted_constraint_ids)
+        add = [(c, loop_factor(by_id[c], loop_default_information)) for c in sorted(now - held)]
+        graph.update(add=add, remove=sorted(held - now), relinearize=True)
+        graph.estimate()
+        times.append(time.perf_counter() - start)
+        held = now
+    return tuple(times)
 
 
 def run_scale(
@@ -114,6 +169,7 @@ def run_scale(
     from lcv_replay.bench.suite import build_case_log
     from lcv_replay.bench.verify import load_inputs, verify_inputs
     from lcv_replay.config import to_dict
+    from lcv_replay.verification.base import default_informations
 
     config = config or VerificationConfig()
     runs: list[ScaleRun] = []
@@ -127,6 +183,11 @@ def run_scale(
             last = verified.result.last_step
             if last is not None and (not steps or steps[-1] is not last):
                 steps.append(last)
+            windows: tuple[WindowTime, ...] = ()
+            if name == method:
+                odometry_information, loop_information = default_informations(config, inputs.odometry_information)
+                backend = backend_window_times(inputs.odometry, odometry_information, loop_information, verified.result.constraints, steps)
+                windows = window_times(steps, verified.window_times_s, backend)
             run = ScaleRun(
                 case=case.name,
                 poses=inputs.frames,
@@ -136,7 +197,7 @@ def run_scale(
                 precision=row.precision,
                 recall=row.recall,
                 false_positives=row.false_positives,
-                windows=window_times(steps, verified.window_times_s) if name == method else (),
+                windows=windows,
             )
             runs.append(run)
             if on_run is not None:
@@ -176,20 +237,30 @@ def markdown_totals(report: ScaleReport) -> str:
 
 def markdown_windows(report: ScaleReport, *, bins: int = 10) -> str:
     """Time per window against the history, per world: the windows grouped into ``bins`` by
-    history size, with the mean and maximum window time of each group."""
-    lines = ["| world | history (constraints) | windows | time per window, mean s | max s |", "|---|---|---:|---:|---:|"]
+    history size, with the mean and maximum window time of each group, the back end's mean time
+    on the same windows and the ratio of the two (of their sums over the group). The last window,
+    the end of the log (where the method's second opinions run, which the back end has no part
+    of), gets a row of its own."""
+    lines = [
+        f"| world | history (constraints) | windows | time per window, mean s | max s | back end alone, mean s | {report.method} / back end |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+
+    def row(case: str, label: str, part: list[WindowTime]) -> str:
+        times = [w.time_s for w in part]
+        backend = [w.backend_time_s for w in part if w.backend_time_s is not None]
+        mean_backend = float(np.mean(backend)) if backend and len(backend) == len(part) else None
+        ratio = sum(times) / sum(backend) if mean_backend else None
+        return f"| {case} | {label} | {len(part)} | {np.mean(times):.2f} | {np.max(times):.2f} | {_fmt(mean_backend, 3)} | {_fmt(ratio, 1)} |"
+
     for run in report.runs:
         if run.method != report.method or not run.windows:
             continue
-        windows = list(run.windows)
-        groups = np.array_split(np.arange(len(windows)), min(bins, len(windows)))
-        for group in groups:
-            if len(group) == 0:
-                continue
-            part = [windows[i] for i in group]
-            times = [w.time_s for w in part]
-            lines.append(
-                f"| {run.case} | {part[0].history_constraints}-{part[-1].history_constraints} | {len(part)} | "
-                f"{np.mean(times):.2f} | {np.max(times):.2f} |"
-            )
+        windows, last = list(run.windows[:-1]), run.windows[-1]
+        for group in np.array_split(np.arange(len(windows)), min(bins, len(windows))) if windows else ():
+            if len(group):
+                part = [windows[i] for i in group]
+                first, latest = part[0].history_constraints, part[-1].history_constraints
+                lines.append(row(run.case, f"{first}" if first == latest else f"{first}-{latest}", part))
+        lines.append(row(run.case, f"end of the log ({last.history_constraints + last.new_constraints})", [last]))
     return "\n".join(lines)

@@ -154,5 +154,48 @@ def test_bench_scale_prints_both_tables_and_writes_json(tmp_path):
         if run["method"] == "ilv+":
             assert run["windows"] and all(w["time_s"] >= 0 for w in run["windows"])
             assert [w["history_constraints"] for w in run["windows"]] == sorted(w["history_constraints"] for w in run["windows"])
+            # the back end alone, timed on the same windows
+            assert all(w["backend_time_s"] > 0 for w in run["windows"])
+    assert "ilv+ / back end" in result.output and "end of the log" in result.output
     again = CliRunner().invoke(app, args)
     assert again.exit_code == 2 and "--force" in again.output  # the one overwrite rule
+
+
+def test_the_back_end_reference_absorbs_each_windows_change_of_the_accepted_loops(tmp_path, monkeypatch):
+    """``backend_window_times`` replays a run's accepted set window by window through iSAM2: one
+    time per step, loops leaving the set are removed (a loop added twice or removed while absent
+    would raise), and what it holds at the end is what the run accepted."""
+    import dataclasses
+
+    from lcv_replay.bench.scale import backend_window_times
+    from lcv_replay.bench.suite import build_case_log
+    from lcv_replay.bench.verify import load_inputs, verify_inputs
+    from lcv_replay.verification.base import default_informations
+    from lcv_replay.verification.config import VerificationConfig
+    from lcv_replay.verification.pose_graph import IncrementalGraph
+
+    case = world_cases(["grid"], [600], ["gaussian"], ["group"], [30], [3])[0]
+    inputs = load_inputs(build_case_log(case, Path("/nonexistent"), tmp_path).path)
+    run = verify_inputs(inputs, "ilv+")
+    steps = list(run.steps)
+    if steps[-1] is not run.result.last_step:
+        steps.append(run.result.last_step)
+    accepted = [s.accepted_constraint_ids for s in steps]
+    assert len(accepted[-1]) > 20
+    # a loop that leaves the set in one window and comes back in the next
+    leaving = accepted[-2][0]
+    steps[-2] = dataclasses.replace(steps[-2], accepted_constraint_ids=tuple(c for c in accepted[-2] if c != leaving))
+    odometry_information, loop_information = default_informations(VerificationConfig(), inputs.odometry_information)
+
+    held: list[frozenset[int]] = []
+    original_update = IncrementalGraph.update
+
+    def update(self, add=(), remove=(), **kwargs):
+        original_update(self, add=add, remove=remove, **kwargs)
+        held.append(self.loop_ids)
+
+    monkeypatch.setattr(IncrementalGraph, "update", update)
+    times = backend_window_times(inputs.odometry, odometry_information, loop_information, run.result.constraints, steps)
+    assert len(times) == len(steps) and all(t > 0 for t in times)
+    assert held[-2] == frozenset(steps[-2].accepted_constraint_ids) and leaving not in held[-2]
+    assert held[-1] == frozenset(accepted[-1])
