@@ -115,8 +115,8 @@ def backend_window_times(
     odometry: np.ndarray,
     odometry_information: np.ndarray,
     loop_default_information: np.ndarray,
-    constraints: Sequence["Constraint"],
-    steps: Sequence["VerifierStep"],
+    constraints: Sequence[Constraint],
+    steps: Sequence[VerifierStep],
 ) -> tuple[float, ...]:
     """The reference for the cost of each window: the back end alone. An iSAM2 graph
     (:class:`~lcv_replay.verification.pose_graph.IncrementalGraph`, the one ``ilv+`` keeps its

@@ -200,14 +200,48 @@ def test_true_loops_refused_under_odometry_declared_too_tight_are_tried_under_th
     level that is not applied (only tighter ones are). At the end of the log the refused loops
     inside the innovations' heavy tail are tried under it. Measured: recall 0.988 before, 0.993
     now (GNC-TLS 0.874, DCS 0.855), no false loop."""
+    (row,) = _world_rows(tmp_path, "grid", 2000, 500, 2)
+    assert row.false_positives == 0
+    assert row.recall >= 0.992
+
+
+def _world_rows(tmp_path, layout: str, poses: int, outliers: int, seed: int, methods=("ilv+",)):
+    """Rows of ``methods`` on a generated world with heavy-tailed odometry and grouped outliers."""
     from lcv_replay.bench.suite import build_case_log
     from lcv_replay.bench.suites import world_cases
     from lcv_replay.bench.verify import load_inputs, verify_inputs
 
-    case = world_cases(["grid"], [2000], ["heavy"], ["group"], [500], [2])[0]
-    row = verify_inputs(load_inputs(build_case_log(case, Path("/nonexistent"), tmp_path).path), "ilv+").row
+    case = world_cases([layout], [poses], ["heavy"], ["group"], [outliers], [seed])[0]
+    inputs = load_inputs(build_case_log(case, Path("/nonexistent"), tmp_path).path)
+    return [verify_inputs(inputs, method).row for method in methods]
+
+
+@pytest.mark.slow
+def test_a_false_group_that_bent_the_map_is_contested_by_the_true_cluster_it_strains(tmp_path):
+    """A ring of 2,000 poses with heavy-tailed odometry and 400 grouped outliers, seed 9104 (drawn
+    fresh). A false group of 8 loops joined at the second window and bent a stretch of the map;
+    a true cluster of 6 then did not fit it. The contest between them was skipped because the
+    false loops' residuals were small (the map had been bent to meet them), and two more false
+    groups followed. Measured before: 28 false loops, recall 0.711, ATE 21.0 m; now none, recall
+    0.987, ATE 0.79 m (the oracle's 0.79; GNC-TLS: none, 0.856, 0.80 m)."""
+    row, oracle = _world_rows(tmp_path, "ring", 2000, 400, 9104, methods=("ilv+", "oracle"))
     assert row.false_positives == 0
-    assert row.recall >= 0.992
+    assert row.recall >= 0.98
+    assert row.ate_rmse_m <= 1.1 * oracle.ate_rmse_m
+
+
+@pytest.mark.slow
+def test_a_large_true_revisit_refused_on_one_step_is_tried_again_at_the_end(tmp_path):
+    """A ring of 5,000 poses with heavy-tailed odometry and 1,000 grouped outliers, seed 9007
+    (drawn fresh). A true revisit of 178 loops was refused on one Gauss-Newton step at the third
+    window, where a true revisit of 123 loops of the same street held the map; at the end it lies
+    at a median of 1.01 gates from the final map, just outside the old condition for a second
+    try (median within one gate), inside the new one (within the near-miss bound, as for a
+    cluster refused by a solve). Measured before: recall 0.885, ATE 0.598 m; now 0.987, 0.561 m
+    (the oracle's 0.578; GNC-TLS 0.830, 0.548 m); no false loop either way."""
+    (row,) = _world_rows(tmp_path, "ring", 5000, 1000, 9007)
+    assert row.false_positives == 0
+    assert row.recall >= 0.98
 
 
 # ----------------------------------------------------------------------------------------------
