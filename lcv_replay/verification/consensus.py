@@ -1059,8 +1059,8 @@ class ConsensusVerifier(WindowedVerifier):
         is not judged beforehand from the opponents' residuals. Leaving an accepted cluster out
         lowers the chi-square by its innovation against the graph without it, which also counts
         the bend it put in the odometry; its residuals, which the map was bent to meet, do not.
-        Measured on a fresh heavy-tailed ring (ring-2k-heavy-group-400-s9104, drawn after this
-        stop's other changes): a false group of 8 loops, accepted at the second window, bent a
+        Measured on a fresh heavy-tailed ring (ring-2k-heavy-group-400-s9104, a seed no earlier
+        run had used): a false group of 8 loops, accepted at the second window, bent a
         stretch that a true cluster of 6 then did not fit; its residuals were small, so the
         contest was never run, and two more false groups followed (28 false loops, recall 0.711,
         ATE 21.0 m). Run, the contest deposes it: no false loop, recall 0.987, ATE 0.79 m (the
@@ -1290,7 +1290,7 @@ class ConsensusVerifier(WindowedVerifier):
         median of 1.01 gates at the end: recall 0.885 to 0.987), largest first; a cluster that
         fails again is split into the members that fit and the others, and the first are tried
         alone. The trial is the judge: a false group claims places the final map does not have,
-        and lies hundreds to thousands of gates off it."""
+        and lies tens to thousands of gates off it (58 or more on that ring)."""
         retry = {
             c: self.clusters[c] for c, ratio in self._near_misses.items()
             if ratio < self.NEAR_MISS and c in self.clusters and np.any(self._fate[self.clusters[c].members] == Fate.REJECTED)
