@@ -231,6 +231,20 @@ def test_a_false_group_that_bent_the_map_is_contested_by_the_true_cluster_it_str
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="known failure (issue 16): a false group of 10 that bends the map is accepted; see docs/verification-bench.md, 'Drawn in this stop'")
+@pytest.mark.parametrize("seed", [9102, 9207])
+def test_fresh_heavy_tailed_rings_where_a_false_group_still_wins(tmp_path, seed):
+    """Two of 36 fresh heavy-tailed rings of 2,000 poses with 400 grouped outliers on which ``ilv+``
+    still accepts a false group of 10 loops (ATE 11.6 and 20.7 m against the oracle's 0.52 and
+    1.04 m; GNC-TLS accepts none). Seed 9102: the group joins at the first window against a true
+    revisit cut short by the window's end. Seed 9207: it joins on a plain trial at the third
+    window and no true cluster is refused against it. Strict: when a change fixes either, this
+    test fails until the mark is removed."""
+    (row,) = _world_rows(tmp_path, "ring", 2000, 400, seed)
+    assert row.false_positives == 0
+
+
+@pytest.mark.slow
 def test_a_large_true_revisit_refused_on_one_step_is_tried_again_at_the_end(tmp_path):
     """A ring of 5,000 poses with heavy-tailed odometry and 1,000 grouped outliers, seed 9007
     (drawn fresh). A true revisit of 178 loops was refused on one Gauss-Newton step at the third
