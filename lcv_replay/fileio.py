@@ -100,6 +100,23 @@ def check_output_path(path: str | Path, *, force: bool = False) -> Path:
     return path
 
 
+def make_folder(path: str | Path, *, what: str = "the work folder") -> Path:
+    """Create folder ``path`` (and its parents) if needed; returns it as a ``Path``.
+
+    Raises :class:`OutputError` naming the folder when it cannot be created: a write failure
+    (:func:`write_error`: full disk, read-only, permission) or a path that cannot hold a folder
+    (a parent that is a file, or that cannot be created)."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        if is_write_failure(exc):
+            raise write_error(path, exc, what=what) from None
+        reason = exc.strerror or str(exc)
+        raise OutputError(f"cannot create {what} ({reason})", path=path, fix="pass a folder that can be created") from None
+    return path
+
+
 @contextlib.contextmanager
 def atomic_output(path: str | Path, *, force: bool = False) -> Iterator[Path]:
     """Yield a temp path next to ``path``; rename it to ``path`` only if the block succeeds.

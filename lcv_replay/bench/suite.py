@@ -24,6 +24,7 @@ import numpy as np
 from lcv_replay.bench.suites import DEFAULT_METHODS, Suite, SuiteCase
 from lcv_replay.bench.verify import LogInputs, VerifyRow, load_inputs, verify_inputs
 from lcv_replay.errors import LcvError, RecorderError
+from lcv_replay.fileio import make_folder
 from lcv_replay.verification.config import VerificationConfig
 
 log = logging.getLogger(__name__)
@@ -152,7 +153,7 @@ def build_case_log(case: SuiteCase, data_dir: Path, workdir: Path) -> BuiltLog:
     from lcv_replay.log.reader import open_log
     from recorders.g2o import record_g2o
 
-    workdir.mkdir(parents=True, exist_ok=True)
+    make_folder(workdir)
     path = workdir / case_log_name(case, data_dir)
     if path.is_file():
         try:

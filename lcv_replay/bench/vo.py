@@ -30,6 +30,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from lcv_replay.fileio import make_folder
 from lcv_replay.records import Pose2D, StereoCalibration
 from lcv_replay.vo.config import VoConfig
 
@@ -350,7 +351,7 @@ def end_to_end(
     from lcv_replay.log.reader import open_log
     from lcv_replay.replay import ReplayOptions, replay
 
-    workdir.mkdir(parents=True, exist_ok=True)
+    make_folder(workdir)
     rows = []
     for odometry in ("simulated", "vo"):
         path = workdir / f"synthetic_{odometry}_{frames}f_{width_px}x{height_px}_seed{seed}.mcap"

@@ -184,6 +184,7 @@ def _measure_overheads(job: Any, *, tasks: int, note: Callable[[str], None]) -> 
 def measure_images(frames: int, workdir: Path, base: Path, options: Any, note: Callable[[str], None]) -> dict[str, Any]:
     """A synthetic camera log (cached in ``workdir``) replayed in this process with a cold, then a
     warm descriptor cache; seconds per frame of each."""
+    from lcv_replay.fileio import make_folder
     from lcv_replay.fleet.inputs import FleetLog
     from lcv_replay.fleet.task import LogJob, run_log
     from recorders.synthetic import SyntheticOptions, record_synthetic
@@ -191,7 +192,7 @@ def measure_images(frames: int, workdir: Path, base: Path, options: Any, note: C
     path = workdir / f"synthetic-{frames}f-320x240.mcap"
     if not path.is_file():
         note(f"recording a {frames}-frame synthetic camera log into {path} (once)")
-        workdir.mkdir(parents=True, exist_ok=True)
+        make_folder(workdir)
         record_synthetic(path, SyntheticOptions(frames=frames, width_px=320, height_px=240, image_format="jpeg", jpeg_quality=90), force=True)
     runs = {}
     previous = os.environ.get("LCV_CACHE_DIR")

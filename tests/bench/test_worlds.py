@@ -199,3 +199,18 @@ def test_the_back_end_reference_absorbs_each_windows_change_of_the_accepted_loop
     assert len(times) == len(steps) and all(t > 0 for t in times)
     assert held[-2] == frozenset(steps[-2].accepted_constraint_ids) and leaving not in held[-2]
     assert held[-1] == frozenset(accepted[-1])
+
+
+@pytest.mark.parametrize("command", [["bench", "scale", "--poses", "500", "-r", "dcs"], ["bench", "suite", "--suite", "standard", "-m", "none"]])
+def test_a_work_folder_that_cannot_be_created_is_one_error_line(tmp_path, command):
+    """``--workdir`` under a file: exit 2 with one ``error:`` line naming the folder, no traceback."""
+    from typer.testing import CliRunner
+
+    from lcv_replay.cli import app
+
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    result = CliRunner().invoke(app, [*command, "--workdir", str(blocker / "work")])
+    assert result.exit_code == 2, result.output
+    assert "Traceback" not in result.output
+    assert f"error: {blocker / 'work'}: cannot create the work folder" in result.output
