@@ -69,12 +69,13 @@ any loop fits, waits one window for support; at the end of the log it is decided
 clusters whose opponents are still accepted (and hold no more loops) are contested once more
 (solved in full), and clusters refused by a near miss, clusters deposed by a contest, clusters
 refused against those and refused clusters of three loops or more that mostly fit the final
-solution are tried once more against the final hypothesis. Last, where the innovations' fitted tail reaches beyond the gate, the refused loops
-inside it that nearly fit the final map are tried under the looser of the declared odometry level
-and the one the long cycles show (:meth:`ConsensusVerifier._retry_under_looser_level`): true loops
-across a stretch of odometry worse than its bulk; then the refused loops that fit, as they are, the
-solution of the accepted loops under heavy-tailed (Cauchy) odometry, which bends the map at a slip
-instead of around it, are tried in that solution (:meth:`ConsensusVerifier._retry_across_slips`).
+solution are tried once more against the final hypothesis. Last, where the innovations' fitted
+tail reaches beyond the gate, the refused loops inside it that nearly fit the final map are tried
+under the looser of the declared odometry level and the one the long cycles show
+(:meth:`ConsensusVerifier._retry_under_looser_level`): true loops across a stretch of odometry
+worse than its bulk; then the refused loops that fit, as they are, the solution of the accepted
+loops under heavy-tailed (Cauchy) odometry, which bends the map at a slip instead of around it,
+are tried in that solution (:meth:`ConsensusVerifier._retry_across_slips`).
 
 Cost per window: the screen and the residual tests are vectorised numpy over the constraints;
 solves are iSAM2 updates, whose cost is the part of the Bayes tree the change touches, and their
