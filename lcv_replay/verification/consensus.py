@@ -1114,27 +1114,27 @@ class ConsensusVerifier(WindowedVerifier):
         """At the end of the log: the refused clusters (three loops or more still refused) whose
         opponents are still accepted and hold no more loops than they, most refused loops first,
         with those opponents; for :meth:`_contest_losers`, whose contests are then solved in full.
-        (A challenger with fewer loops than its opponents must fit better than they by a gate per
-        loop of the difference; the false groups that lost to large true clusters make up most of
-        the standing conflicts, and contesting them all cost 7 s at the end of a Gaussian 5k grid
-        with 1,000 grouped outliers, all lost.) A contest lost on one
-        Gauss-Newton step at a window, or against a hypothesis that later windows changed, is
-        decided again against the final one. Measured on a fresh heavy-tailed ring
-        (ring-2k-heavy-group-400-s9300): a true revisit of 93 loops (frames 635–811) lost on
-        one step (J 106,000 higher) at the second window to 8 true loops of two clusters (frames
-        241–248 and 943–945) and was never contested again; at the end, solved in full, it wins
-        (J lower by 2,698): recall 0.842 → 0.984, ATE 1.70 → 0.98 m (the oracle's 0.96; no false
-        loop either way)."""
-        losers = []
+        A contest lost on one Gauss-Newton step at a window, or against a hypothesis that later
+        windows changed, is decided again against the final one. Measured on a fresh
+        heavy-tailed ring (ring-2k-heavy-group-400-s9300): a true revisit of 93 loops (frames
+        635–811) lost on one step (J 106,000 higher) at the second window to 8 true loops of two
+        clusters (frames 241–248 and 943–945) and was never contested again; at the end, solved
+        in full, it wins (J lower by 2,698): recall 0.842 → 0.984, ATE 1.70 → 0.98 m (the
+        oracle's 0.96; no false loop either way).
+
+        A challenger with fewer loops than its opponents would have to fit better than they by a
+        gate per loop of the difference; the false groups that lost to large true clusters make
+        up most of the standing conflicts, and contesting them all cost 7 s at the end of a
+        Gaussian 5k grid with 1,000 grouped outliers, every contest lost."""
+        standing = []
         for c in self.clusters.values():
             refused = int(np.sum(self._fate[c.members] == Fate.REJECTED))
             if c.id in exclude or refused < self.plus.frontier_min_loops:
                 continue
             opponents = {o for o in c.opponents if len(self._members({o}, Fate.ACCEPTED))}
             if opponents and refused >= len(self._members(opponents, Fate.ACCEPTED)):
-                losers.append((c, opponents))
-        losers.sort(key=lambda co: (-int(np.sum(self._fate[co[0].members] == Fate.REJECTED)), co[0].id))
-        return losers
+                standing.append((-refused, c.id, c, opponents))
+        return [(c, opponents) for *_, c, opponents in sorted(standing, key=lambda t: t[:2])]
 
     def _members(self, cluster_ids: set[int], fate: Fate) -> np.ndarray:
         ids = [self.clusters[c].members for c in cluster_ids]
@@ -1239,9 +1239,10 @@ class ConsensusVerifier(WindowedVerifier):
         recall 0.740, ATE 11.6 m. Undecided, both sides leave the graph; at the next window the
         revisit joins and the false group is refused against it: no false loop, recall 0.979,
         ATE 0.51 m (the oracle's 0.52). Without the bound on the count, a false group at the end
-        of a ring of the fresh-seed suite (ring-1500-heavy-group-300-s9004) that lost to the true clusters
-        around it by 137 gates (χ² lower by 92: the alternative leaves out over a hundred loops)
-        was left undecided, and 10 false loops were accepted at the end of the log."""
+        of a ring of the fresh-seed suite (ring-1500-heavy-group-300-s9004) that lost to the true
+        clusters around it by 137 gates (χ² lower by 92: the alternative leaves out over a
+        hundred loops) was left undecided, and 10 false loops were accepted at the end of the
+        log."""
         if self._finished or chi2_change >= 0 or delta >= self.gate_chi2 * self.plus.cluster_span_frames:
             return False
         members = np.concatenate([self.clusters[c].members for c in challenger])
