@@ -97,6 +97,11 @@ def check_output_path(path: str | Path, *, force: bool = False) -> Path:
         raise OutputError(
             f"output folder is not writable ({free_space_text(folder)})", path=path, fix="choose another output path"
         )
+    try:  # os.access trusts the mode bits: /proc or a read-only mount passes it for root
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise write_error(path, exc) from None
     return path
 
 
@@ -128,9 +133,7 @@ def atomic_output(path: str | Path, *, force: bool = False) -> Iterator[Path]:
     path = check_output_path(path, force=force)
     try:
         fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-    except OSError as exc:
-        if not is_write_failure(exc):
-            raise
+    except OSError as exc:  # no file can be created next to the output: it cannot be written
         raise write_error(path, exc) from None
     os.close(fd)
     # mkstemp creates 0600 files; give the output the usual permissions (0666 minus the umask).

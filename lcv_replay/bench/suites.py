@@ -329,6 +329,14 @@ def _typed(value: Any, kind: type | tuple[type, ...], key: str, path: Path) -> A
     return value
 
 
+def _group_size(table: dict, section: str, path: Path) -> int:
+    """``group_size`` of a suite table (default 10): loops per run of grouped outliers, >= 1."""
+    value = _typed(table.get("group_size", 10), int, f"{section}.group_size", path)
+    if value < 1:
+        raise ConfigError(f"suite key '{section}.group_size' = {value} must be >= 1", path=path, fix="set it to e.g. 10 (Vertigo's)")
+    return value
+
+
 def _seed(value: Any, key: str, path: Path) -> int:
     try:
         return require_seed(value, f"suite key '{key}'")
@@ -390,7 +398,7 @@ def load_suite_file(path: str | Path, *, _seen: tuple[Path, ...] = ()) -> Suite:
                 _typed(table.get("dataset", "manhattan"), str, "vertigo.dataset", path),
                 _list_of(table, "outliers", int, path, VERTIGO_OUTLIERS),
                 _list_of(table, "modes", str, path, VERTIGO_MODES),
-                group_size=_typed(table.get("group_size", 10), int, "vertigo.group_size", path),
+                group_size=_group_size(table, "vertigo", path),
                 seed=_seed(table.get("seed", 0), "vertigo.seed", path),
             )
         )
@@ -404,7 +412,7 @@ def load_suite_file(path: str | Path, *, _seen: tuple[Path, ...] = ()) -> Suite:
                 _list_of(table, "modes", str, path, VERTIGO_MODES),
                 _list_of(table, "outliers", int, path, (500,)),
                 tuple(_seed(v, "world.seeds", path) for v in _list_of(table, "seeds", int, path, (0,))),
-                group_size=_typed(table.get("group_size", 10), int, "world.group_size", path),
+                group_size=_group_size(table, "world", path),
             )
         )
     for table in _typed(data.get("case", []), list, "case", path):
@@ -420,7 +428,7 @@ def load_suite_file(path: str | Path, *, _seen: tuple[Path, ...] = ()) -> Suite:
                 true_loops=_typed(table.get("true_loops"), (str, type(None)), "case.true_loops", path),
                 outliers=_typed(table.get("outliers", 0), int, "case.outliers", path),
                 outlier_mode=_typed(table.get("outlier_mode", "random"), str, "case.outlier_mode", path),
-                group_size=_typed(table.get("group_size", 10), int, "case.group_size", path),
+                group_size=_group_size(table, "case", path),
                 seed=_seed(table.get("seed", 0), "case.seed", path),
                 loop_measurements=_measurements(table.get("loop_measurements", "as-recorded"), path),
             )

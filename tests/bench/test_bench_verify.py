@@ -162,6 +162,7 @@ outliers = 5
         ("[[case]]\nname = 'a'\ngraph = 'x'\n[[case]]\nname = 'a'\ngraph = 'y'\n", "'a' is used twice"),
         ("[[robustslam_kitti]]\nloop_measurements = 'exact'\n", "not allowed"),
         ("this is = not toml", "not valid TOML"),
+        ("[[world]]\nlayouts = ['ring']\ngroup_size = 0\n", "'world.group_size' = 0 must be >= 1"),
     ],
 )
 def test_suite_toml_errors_name_the_problem(tmp_path, text, message):

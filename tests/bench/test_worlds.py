@@ -214,3 +214,19 @@ def test_a_work_folder_that_cannot_be_created_is_one_error_line(tmp_path, comman
     assert result.exit_code == 2, result.output
     assert "Traceback" not in result.output
     assert f"error: {blocker / 'work'}: cannot create the work folder" in result.output
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc (Linux): a folder that passes os.access but holds no file")
+def test_a_json_report_that_cannot_be_written_is_refused_before_the_suite_runs(tmp_path):
+    """``--json`` in a folder where no file can be created though ``os.access`` says it can (/proc,
+    as root): exit 2 with one ``error:`` line naming the file, before any case runs (the report
+    was written at the end, and its failure was a traceback after the whole suite)."""
+    from typer.testing import CliRunner
+
+    from lcv_replay.cli import app
+
+    result = CliRunner().invoke(app, ["bench", "suite", "--suite", "standard", "-m", "none", "--workdir", str(tmp_path), "--json", "/proc/lcv-report.json"])
+    assert result.exit_code == 2, result.output
+    assert "Traceback" not in result.output
+    assert "error: /proc/lcv-report.json: cannot write the file" in result.output
+    assert not list(tmp_path.iterdir())  # no case log was built
