@@ -1370,10 +1370,10 @@ class ConsensusVerifier(WindowedVerifier):
         """``members`` and the ``accepted`` loops of the same revisit: those whose query frame and
         match frame both lie within ``cluster_span_frames`` of some member's (transitively)."""
         span = self.plus.cluster_span_frames
+        q, m = self._q[accepted][:, None], self._m[accepted][:, None]
         revisit = np.unique(members)
         while True:
-            near = (np.abs(self._q[accepted][:, None] - self._q[revisit][None, :]) <= span) & (
-                np.abs(self._m[accepted][:, None] - self._m[revisit][None, :]) <= span)
+            near = (np.abs(q - self._q[revisit][None, :]) <= span) & (np.abs(m - self._m[revisit][None, :]) <= span)
             grown = np.union1d(revisit, accepted[np.any(near, axis=1)])
             if len(grown) == len(revisit):
                 return revisit
