@@ -1173,14 +1173,15 @@ class ConsensusVerifier(WindowedVerifier):
             refused = c.members[self._fate[c.members] == Fate.REJECTED]
             if c.id in exclude or len(refused) < self.plus.frontier_min_loops:
                 continue
-            named = {o for o in c.opponents if len(self._members({o}, Fate.ACCEPTED))}
-            if named and len(refused) >= len(self._members(named, Fate.ACCEPTED)):
-                standing.append((-len(refused), c.id, c, named))
+            held = {o: n for o in c.opponents if (n := len(self._members({o}, Fate.ACCEPTED)))}  # named, still accepted
+            if held and len(refused) >= sum(held.values()):
+                standing.append((-len(refused), c.id, c, set(held)))
                 continue
             # a side it outweighs, smallest first, among those and the suspects
-            held = {o: len(self._members({o}, Fate.ACCEPTED)) for o in (named | self._suspects(refused, accepted)) - {c.id}}
+            held |= {o: n for o in self._suspects(refused, accepted) - set(held) if (n := len(self._members({o}, Fate.ACCEPTED)))}
+            held.pop(c.id, None)
             side, count = set(), 0
-            for o in sorted((o for o in held if held[o]), key=lambda o: (held[o], o)):
+            for o in sorted(held, key=lambda o: (held[o], o)):
                 if count + held[o] > len(refused):
                     break
                 side.add(o)
