@@ -1544,9 +1544,10 @@ class ConsensusVerifier(WindowedVerifier):
 
     def _largest_first(self) -> list[str]:
         """At the end of the log, a second hypothesis built afresh on the odometry from the same
-        clusters in another order, largest first: the accepted clusters and the refused ones with
-        ``frontier_min_loops`` refused loops or more are tried in turn (:meth:`_try_again`; the
-        accepted clusters between two refused ones in that order together). It replaces the
+        clusters in another order, largest first: each cluster's accepted loops, and its refused
+        ones where they are ``frontier_min_loops`` or more, are tried in turn as two parts
+        (:meth:`_try_again`; the accepted parts between two refused ones in that order together,
+        and of two parts of one size the accepted one first). It replaces the
         working hypothesis where its ``J`` over those loops is lower by more than
         ``ambiguity_margin`` gates (then the loops the screen set aside are screened again in its
         map, by the caller). Returns notes for the step.
@@ -1564,6 +1565,15 @@ class ConsensusVerifier(WindowedVerifier):
         such rings kept false loops; with this, 3 (s9404, s9900, s9903), and none of 48 drawn
         after it (docs/verification-bench.md, "Fifth stop").
 
+        Why two parts, and the accepted one first: a false group can run beside a true revisit,
+        a frame or two off it. On s9804 (groups of 20), tried whole, a cluster of 19 true and 10
+        false loops came back whole, and a false group of 10 was tried before the true revisit of
+        10 it runs beside (by cluster id) and took its place: 20 false loops (none in the working
+        hypothesis). Not fixed by it: on s9805 (groups of 20) a false group of 19 is tried before
+        the true clusters of 15 and 14 loops that keep it out of the working hypothesis, and the
+        hypothesis built around it wins on the true revisits of 48 and 47 loops it also takes in
+        (J lower by 2,572): 19 false loops, where the working hypothesis ends with none.
+
         Cost: the accepted clusters larger than the largest refused one would be tried first and
         accepted; they join the new graph at once. Where no cluster of ``frontier_min_loops``
         loops or more stands refused (random outliers are refused one by one), nothing is built.
@@ -1579,24 +1589,27 @@ class ConsensusVerifier(WindowedVerifier):
         accepted = self._ids(Fate.ACCEPTED)
         if len(accepted) == 0:
             return []
-        order: list[tuple[int, int, np.ndarray]] = []
+        # each cluster's accepted loops, and its refused ones (three or more) apart: a cluster may
+        # join a false group to the true revisit it runs beside; of two parts of one size, the
+        # accepted one first (the working hypothesis chose it)
+        order: list[tuple[int, int, int, np.ndarray]] = []
         for c in self.clusters.values():
             fate = self._fate[c.members]
             members = c.members[fate == Fate.ACCEPTED]
             refused = c.members[fate == Fate.REJECTED]
-            if len(refused) >= self.plus.frontier_min_loops:
-                members = np.concatenate([members, refused])
             if len(members):
-                order.append((-len(members), c.id, members))
+                order.append((-len(members), 0, c.id, members))
+            if len(refused) >= self.plus.frontier_min_loops:
+                order.append((-len(refused), 1, c.id, refused))
         loose = accepted[self._cluster_of[accepted] < 0]
-        order += [(-1, -1 - int(c), np.array([c], dtype=np.int64)) for c in loose.tolist()]
-        # the clusters larger than every refused one would be tried first, and accepted: they
-        # join at once; the others are tried one by one
-        largest_refused = max((-size for size, _, members in order if np.any(self._fate[members] == Fate.REJECTED)), default=0)
+        order += [(-1, 0, -1 - int(c), np.array([c], dtype=np.int64)) for c in loose.tolist()]
+        # the parts larger than every refused one would be tried first, and accepted: they join
+        # at once; the others are tried in turn
+        largest_refused = max((-size for size, refused, *_ in order if refused), default=0)
         if largest_refused == 0:
             return []
-        order.sort(key=lambda o: o[:2])
-        held = [members for size, _, members in order if -size > largest_refused]
+        order.sort(key=lambda o: o[:3])
+        held = [members for size, _, _, members in order if -size > largest_refused]
         order = [o for o in order if -o[0] <= largest_refused]
         universe = np.concatenate([m for *_, m in order])
         j_working = self._chi2_total() + gate * int(np.count_nonzero(self._fate[universe] != Fate.ACCEPTED))
@@ -1609,9 +1622,9 @@ class ConsensusVerifier(WindowedVerifier):
         try:
             self._apply(add=np.concatenate(held) if held else ())
             self._fate[universe] = Fate.REJECTED
-            run: list[np.ndarray] = []  # accepted clusters between two refused ones: tried together
-            for *_, members in order + [(0, 0, None)]:
-                if members is not None and np.all(saved[1][members] == Fate.ACCEPTED):
+            run: list[np.ndarray] = []  # accepted parts between two refused ones: tried together
+            for _, refused, _, members in order + [(0, 1, 0, None)]:
+                if not refused:
                     run.append(members)
                     continue
                 if run:
