@@ -1562,14 +1562,14 @@ class ConsensusVerifier(WindowedVerifier):
         to a true one of 143 (J higher by 82,532) that the false groups had bent. Taken largest
         first, the true revisits hold the map before a group of false loops (one place, a handful
         of loops) is tried, and the group does not fit it. With contests and searches, 11 of 204
-        such rings kept false loops; with this, 3 (s9404, s9900, s9903), and none of 48 drawn
-        after it (docs/verification-bench.md, "Fifth stop").
+        such rings kept false loops; with this, 4 (s9404, s9900, s9903, and s9805, which it broke:
+        below), and none of 48 drawn after it (docs/verification-bench.md, "Fifth stop").
 
         Why two parts, and the accepted one first: a false group can run beside a true revisit,
         a frame or two off it. On s9804 (groups of 20), tried whole, a cluster of 19 true and 10
         false loops came back whole, and a false group of 10 was tried before the true revisit of
         10 it runs beside (by cluster id) and took its place: 20 false loops (none in the working
-        hypothesis). Not fixed by it: on s9805 (groups of 20) a false group of 19 is tried before
+        hypothesis). What it breaks: on s9805 (groups of 20) a false group of 19 is tried before
         the true clusters of 15 and 14 loops that keep it out of the working hypothesis, and the
         hypothesis built around it wins on the true revisits of 48 and 47 loops it also takes in
         (J lower by 2,572): 19 false loops, where the working hypothesis ends with none.
@@ -1579,7 +1579,7 @@ class ConsensusVerifier(WindowedVerifier):
         loops or more stands refused (random outliers are refused one by one), nothing is built.
         It is still the costliest step at the end of the log where false groups abound: on
         grid-5k-gaussian-group-1000-s9007 the end of the log went from 2.4 s (30 iSAM2 updates)
-        to 24 s (513), nothing changed. Measured and not kept, each with the refused clusters
+        to 24 s (513), and on grouped city10000 from 7.7 s (79) to 31.6 s (267), nothing changed. Measured and not kept, each with the refused clusters
         tried once more after the first pass: every cluster tried one by one from the odometry
         alone (the whole run 54 s against 12 s, run beside another; it also fixed s9404, whose
         true revisits the bent map had screened out before they were ever clustered, which this
