@@ -1020,12 +1020,13 @@ class ConsensusVerifier(WindowedVerifier):
                 strained |= set(owners[ends == ends[right]].tolist())
         return {int(c) for c in np.unique(self._cluster_of[list(strained)]) if c >= 0} if strained else set()
 
-    def _rebuild(self) -> None:
-        """Rebuild the iSAM2 graph from the accepted loops (after a GTSAM failure)."""
+    def _rebuild(self, loops: np.ndarray | None = None) -> None:
+        """Rebuild the iSAM2 graph afresh on the odometry with ``loops`` (default: the accepted
+        ones; after a GTSAM failure, and for :meth:`_largest_first`)."""
         self._retired_updates += self.graph.updates
         self.graph = IncrementalGraph(self.chain.information / self.odometry_scale)
         self.graph.extend(self.chain.poses)
-        self._apply(add=self._ids(Fate.ACCEPTED))
+        self._apply(add=self._ids(Fate.ACCEPTED) if loops is None else loops)
         self._chi2_cache = None
 
     def _reform_accepted(self) -> None:
@@ -1578,13 +1579,15 @@ class ConsensusVerifier(WindowedVerifier):
         accepted; they join the new graph at once. Where no cluster of ``frontier_min_loops``
         loops or more stands refused (random outliers are refused one by one), nothing is built.
         It is still the costliest step at the end of the log where false groups abound: on
-        grid-5k-gaussian-group-1000-s9007 the end of the log went from 2.4 s (30 iSAM2 updates)
-        to 24 s (513), and on grouped city10000 from 7.7 s (79) to 31.6 s (267), nothing changed. Measured and not kept, each with the refused clusters
+        grid-5k-gaussian-group-1000-s9007 the end of the log went from 1.5 s (30 iSAM2 updates)
+        to 11.2 s (300), and on grouped city10000 from 7.7 s (79) to 31.6 s (267), nothing
+        changed. Measured and not kept (beside two bench lanes), each with the refused clusters
         tried once more after the first pass: every cluster tried one by one from the odometry
-        alone (the whole run 54 s against 12 s, run beside another; it also fixed s9404, whose
-        true revisits the bent map had screened out before they were ever clustered, which this
-        build does not); the larger clusters held at once and the others one by one (48 s at
-        the end, 1,588 updates); the accepted runs together (36 s, 719 updates)."""
+        alone (that grid's whole run 54 s against 12 s; it also fixed s9404, whose true revisits
+        the bent map had screened out before they were ever clustered, which this build does
+        not); the larger clusters held at once and the others one by one (48 s at the end, 1,588
+        updates); the accepted runs together (36 s, 719 updates); and without the second pass,
+        but each cluster whole (24 s, 513 updates)."""
         gate = self.gate_chi2
         accepted = self._ids(Fate.ACCEPTED)
         if len(accepted) == 0:
@@ -1615,12 +1618,8 @@ class ConsensusVerifier(WindowedVerifier):
         j_working = self._chi2_total() + gate * int(np.count_nonzero(self._fate[universe] != Fate.ACCEPTED))
         saved = (self.graph, self._fate.copy(), dict(self._on_count), dict(self._near_misses), len(self.innovations))
         t = time.perf_counter()
-        self._retired_updates += self.graph.updates
-        self.graph = IncrementalGraph(self.chain.information / self.odometry_scale)
-        self.graph.extend(self.chain.poses)
-        self._chi2_cache = None
         try:
-            self._apply(add=np.concatenate(held) if held else ())
+            self._rebuild(np.concatenate(held) if held else np.zeros(0, dtype=np.int64))
             self._fate[universe] = Fate.REJECTED
             run: list[np.ndarray] = []  # accepted parts between two refused ones: tried together
             for _, refused, _, members in order + [(0, 1, 0, None)]:
@@ -1638,13 +1637,12 @@ class ConsensusVerifier(WindowedVerifier):
             j_alternative = np.inf
         now = self._ids(Fate.ACCEPTED)
         log.debug("ilv+: largest first: J %.1f against %.1f (%d loops against %d) in %.2f s", j_alternative, j_working, len(now), len(accepted), time.perf_counter() - t)
-        if j_alternative < j_working - self.plus.ambiguity_margin * gate:
-            self._near_misses = {**saved[3], **self._near_misses}
+        if j_alternative < j_working - self.plus.ambiguity_margin * gate:  # the trials' records stay
             left = accepted[~np.isin(accepted, now)]
             came = now[~np.isin(now, accepted)]
             return [f"end of the log: the hypothesis built afresh from the clusters, largest first, has J lower by {j_working - j_alternative:.0f}: "
                     f"{len(came)} loops in, {len(left)} out"]
-        self._retired_updates += self.graph.updates - saved[0].updates
+        self._retired_updates += self.graph.updates - saved[0].updates  # the count of updates goes on from here
         self.graph, self._fate, self._on_count, self._near_misses = saved[:4]
         del self.innovations[saved[4]:]
         self._chi2_cache = None

@@ -345,7 +345,7 @@ def test_fresh_heavy_tailed_rings_where_a_false_group_still_wins(tmp_path, seed,
       it also takes in (J lower by 2,572): 19 false loops. (The tie rule of the end-of-log search
       was added for this ring: a tie that took both sides out of the map let the same group in.)
 
-    Strict: when a change fixes either, this test fails until the mark is removed."""
+    Strict: when a change fixes any of them, this test fails until the mark is removed."""
     (row,) = _world_rows(tmp_path, "ring", 2000, 400, seed, group_size=group_size)
     assert row.false_positives == 0
 
