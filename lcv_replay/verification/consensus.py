@@ -70,7 +70,9 @@ clusters whose opponents are still accepted (and hold no more loops) are contest
 (solved in full, or searched for a side among the suspects). Then a second hypothesis is built
 afresh on the odometry from the same clusters, largest first, and replaces the working one where
 its truncated cost is lower (:meth:`ConsensusVerifier._largest_first`): in the order the robot
-drove, a false group that joined early bends the map the later revisits are judged in. Clusters
+drove, a false group that joined early bends the map the later revisits are judged in. Where it
+replaces it, the loops it left out and those the screen set aside are verified in its map, and
+the conflicts they name are contested as at a window. Clusters
 refused by a near miss, clusters deposed by a contest, clusters
 refused against those and refused clusters of three loops or more that mostly fit the final
 solution are tried once more against the final hypothesis. Last, where the innovations' fitted
@@ -356,8 +358,9 @@ class ConsensusVerifier(WindowedVerifier):
             if np.any(self._fate == Fate.PENDING):  # sent back to the pool in this last window
                 self._verify(self._form_clusters(self._screen()), final=True)
             built = self._largest_first()
-            if built:  # the loops the screen kept out of the map it replaced
-                self._verify(self._form_clusters(self._screen()), final=True)
+            if built:  # the loops the screen kept out of the map it replaced, and those it left out
+                losers = self._verify(self._form_clusters(self._screen()), final=True)
+                self._contest_losers(losers, contests, self.plus.max_contests_per_window)
             notes += built
             for retry, how in (
                 (self._retry_near_misses, "tried once more against the final map"),
@@ -779,7 +782,7 @@ class ConsensusVerifier(WindowedVerifier):
             allowed = max(allowed, self.gate_chi2 * (size - self.plus.ambiguity_margin))
         return allowed
 
-    def _implausible_now(self, members: np.ndarray) -> bool:
+    def _implausible_now(self, members: np.ndarray, *, most_queried: int | None = None) -> bool:
         """Whether the cluster's innovation must exceed what :meth:`_trial` accepts
         (:meth:`_rise_allowed`): adding loops never lowers the chi-square at the optimum, so the
         innovation of the cluster is at least that of any one member, which is bounded from below
@@ -789,7 +792,7 @@ class ConsensusVerifier(WindowedVerifier):
         remembered ones are refreshed, and the screen uses them later), member by member, the most
         strained first and its query frame (near the root of the Bayes tree, the cheaper query)
         before its match frame, until one member proves it (grouped city10000: 1,144 queries ->
-        767, 2.8 -> 2.5 s). (A cluster whose every
+        767, 2.8 -> 2.5 s), or ``most_queried`` members have been queried. (A cluster whose every
         member fails one gate alone may still pass: the first loop of a run bends the map, the
         others then fit. Measured on ringCity with 500
         random outliers, seed 9001: a true cluster of 31 loops after a long open stretch was refused
@@ -810,7 +813,7 @@ class ConsensusVerifier(WindowedVerifier):
             return True
         # the current marginals, member by member, the most strained first: one member proves it
         try:
-            for k in np.argsort(-remembered).tolist():
+            for k in np.argsort(-remembered)[:most_queried].tolist():
                 for frame in (int(q[k]), int(m[k])):  # the query frame's is the cheaper (near the root)
                     if frame not in self._fresh_marginals:
                         self._marginal[frame] = self.graph.marginal_covariance(frame)
@@ -920,10 +923,12 @@ class ConsensusVerifier(WindowedVerifier):
     #: tightened 30 times); :meth:`_retry_near_misses` gives such clusters a solve at the end.
     GROSS_FACTOR = 100.0
 
-    def _trial(self, members: np.ndarray) -> tuple[bool, set[int]]:
+    def _trial(self, members: np.ndarray, *, solve: bool = False) -> tuple[bool, set[int]]:
         """Add ``members`` to the working hypothesis; keep them if their innovation (the rise of
         the chi-square) and residuals pass, else take them out again. Returns ``(kept, opponent
-        clusters)``: the accepted clusters the refused cluster strains (:meth:`_opponents`)."""
+        clusters)``: the accepted clusters the refused cluster strains (:meth:`_opponents`).
+        Unless ``solve``, a trial whose one Gauss-Newton step is :data:`GROSS_FACTOR` cluster
+        gates off is refused without a solve."""
         before = self._chi2_total()
         x_before = self.graph.estimate()
         gate_k = self.cluster_gate(len(members))
@@ -932,7 +937,7 @@ class ConsensusVerifier(WindowedVerifier):
             self._apply(add=members, relinearize=False)
             step = self._chi2_total() - before
             x_step = self.graph.estimate()
-            if step >= self.GROSS_FACTOR * gate_k:
+            if step >= self.GROSS_FACTOR * gate_k and not solve:
                 self.last_fit = self._residual_chi2(x_step, members) < self.gate_chi2
                 opponents = self._opponents(x_before, x_step, exclude=members)
                 self._apply(remove=members, relinearize=False)
@@ -1543,15 +1548,24 @@ class ConsensusVerifier(WindowedVerifier):
             notes.append(f"end of the log: {len(joined)} refused loop{'s' if len(joined) > 1 else ''} accepted once those left")
         return notes
 
+    #: Members of a refused part whose current marginals :meth:`_largest_first` queries to prove
+    #: it implausible before trying it.
+    BUILD_QUERIES = 3
+
     def _largest_first(self) -> list[str]:
         """At the end of the log, a second hypothesis built afresh on the odometry from the same
         clusters in another order, largest first: each cluster's accepted loops, and its refused
         ones where they are ``frontier_min_loops`` or more, are tried in turn as two parts
         (:meth:`_try_again`; the accepted parts between two refused ones in that order together,
-        and of two parts of one size the accepted one first). It replaces the
-        working hypothesis where its ``J`` over those loops is lower by more than
-        ``ambiguity_margin`` gates (then the loops the screen set aside are screened again in its
-        map, by the caller). Returns notes for the step.
+        and of two parts of one size the accepted one first; the first, tried against the
+        odometry alone, solved in full). A refused part that
+        the graph of the parts larger than every refused one proves implausible
+        (:meth:`_implausible_now`, under the marginals of the odometry alone, which bound the new
+        graph's from above, and the current ones of :data:`BUILD_QUERIES` members) is not tried.
+        It replaces the working hypothesis where its ``J`` over those loops is lower by more than
+        ``ambiguity_margin`` gates; then the loops it left out are pending again, and the caller
+        verifies them with those the screen set aside, in its map, and contests the conflicts
+        they name (:meth:`_contest_losers`). Returns notes for the step.
 
         Why: the working hypothesis is built in the order the robot drove. A false group that
         joins early (on the count, in a joint try, or under its cluster gate) bends the map, and
@@ -1562,32 +1576,55 @@ class ConsensusVerifier(WindowedVerifier):
         step (101 cluster gates off); on s9903 a true cluster of 146 loops lost, solved in full,
         to a true one of 143 (J higher by 82,532) that the false groups had bent. Taken largest
         first, the true revisits hold the map before a group of false loops (one place, a handful
-        of loops) is tried, and the group does not fit it. With contests and searches, 11 of 204
-        such rings kept false loops; with this, 4 (s9404, s9900, s9903, and s9805, which it broke:
-        below), and none of 48 drawn after it (docs/verification-bench.md, "Fifth stop").
+        of loops) is tried, and the group does not fit it (docs/verification-bench.md, "Fifth
+        stop" and "Sixth stop").
 
         Why two parts, and the accepted one first: a false group can run beside a true revisit,
         a frame or two off it. On s9804 (groups of 20), tried whole, a cluster of 19 true and 10
         false loops came back whole, and a false group of 10 was tried before the true revisit of
         10 it runs beside (by cluster id) and took its place: 20 false loops (none in the working
-        hypothesis). What it breaks: on s9805 (groups of 20) a false group of 19 is tried before
-        the true clusters of 15 and 14 loops that keep it out of the working hypothesis, and the
-        hypothesis built around it wins on the true revisits of 48 and 47 loops it also takes in
-        (J lower by 2,572): 19 false loops, where the working hypothesis ends with none.
+        hypothesis).
 
-        Cost: the accepted clusters larger than the largest refused one would be tried first and
-        accepted; they join the new graph at once. Where no cluster of ``frontier_min_loops``
-        loops or more stands refused (random outliers are refused one by one), nothing is built.
-        It is still the costliest step at the end of the log where false groups abound: on
-        grid-5k-gaussian-group-1000-s9007 the end of the log went from 1.5 s (30 iSAM2 updates)
-        to 11.2 s (300), and on grouped city10000 from 7.7 s (79) to 31.6 s (267), nothing
-        changed. Measured and not kept (beside two bench lanes), each with the refused clusters
-        tried once more after the first pass: every cluster tried one by one from the odometry
-        alone (that grid's whole run 54 s against 12 s; it also fixed s9404, whose true revisits
-        the bent map had screened out before they were ever clustered, which this build does
-        not); the larger clusters held at once and the others one by one (48 s at the end, 1,588
-        updates); the accepted runs together (36 s, 719 updates); and without the second pass,
-        but each cluster whole (24 s, 513 updates)."""
+        Why the first part is solved in full: one Gauss-Newton step from the odometry alone can be
+        far off for a true revisit. On s10301 the largest refused part, a true revisit of 444
+        loops, was the first tried; refused on its one step, only the 61 loops that fitted the
+        step joined (solved, all 444 fit, a rise of 7 per loop against a gate of 40): 30 false
+        loops, recall 0.359; now none, 0.978. Measured and not kept: every trial of the build
+        solved in full (at the end of the log every contest is). It also fixed s10308, where an
+        accepted run of 447 loops tried second kept 45 after one step and 381 solved, but broke
+        s10504 (groups of 20): a false group of 20, refused on one step, joined when solved, and
+        the build no longer won (14 false loops, recall 0.789); and on s9404 it took another false
+        group first (below).
+
+        Why the loops it left out are verified again, and their conflicts contested: the new
+        hypothesis is greedy too, and its ``J`` is that of the whole. On s9805 (groups of 20) a
+        false group of 19 is tried before the true clusters of 15 and 14 loops that keep it out
+        of the working hypothesis, and the hypothesis built around it wins on the true revisits
+        of 48 and 47 loops it also takes in (J lower by 2,572): 19 false loops, where the working
+        hypothesis ends with none. The true loops it refused against the group, verified again
+        and contested together, depose it: none. Measured and not kept: deciding each
+        disagreement while the hypothesis is built, by ``J`` between an accepted run refused in it
+        and the parts it was refused against that the working hypothesis had refused (it fixed
+        s9805 and broke s9850, whose run held a false group of 20 the working hypothesis had
+        accepted; part by part, it broke s9804, where the refused part held 19 true and 10 false
+        loops). On s9404 (10 false loops before) the new hypothesis takes one false group of 10,
+        after which a true revisit of 214 loops, screened out in the working map, comes back in
+        its map, is refused against that group and a true cluster of 42, and deposes both in a
+        contest (J lower by 4,836): none. Which false group the new hypothesis takes depends on the
+        order of its trials: with every trial solved in full it took another, which kept the
+        revisit screened out (10 false loops, ATE 41.6 m).
+
+        Cost: the parts larger than every refused one would be tried first and accepted; they
+        join the new graph at once. The refused parts proven implausible (most false groups: on
+        grouped city10000 all 76, on grid-5k-gaussian-group-1000-s9007 98 of 103) cost a few
+        marginal queries instead of two or more iSAM2 updates each, and the accepted parts between
+        them are tried together. Where no cluster of ``frontier_min_loops`` loops or more stands
+        refused (random outliers are refused one by one), nothing is built. Measured and not kept
+        (in the fifth stop, beside two bench lanes), each with the refused clusters tried once
+        more after the first pass: every cluster tried one by one from the odometry alone (that
+        grid's whole run 54 s against 12 s); the larger clusters held at once and the others one
+        by one (48 s at the end, 1,588 updates); the accepted runs together (36 s, 719 updates);
+        and without the second pass, but each cluster whole (24 s, 513 updates)."""
         gate = self.gate_chi2
         accepted = self._ids(Fate.ACCEPTED)
         if len(accepted) == 0:
@@ -1616,21 +1653,32 @@ class ConsensusVerifier(WindowedVerifier):
         order = [o for o in order if -o[0] <= largest_refused]
         universe = np.concatenate([m for *_, m in order])
         j_working = self._chi2_total() + gate * int(np.count_nonzero(self._fate[universe] != Fate.ACCEPTED))
-        saved = (self.graph, self._fate.copy(), dict(self._on_count), dict(self._near_misses), len(self.innovations))
+        saved = (self.graph, self._fate.copy(), dict(self._on_count), dict(self._near_misses), len(self.innovations), self._marginal, self._fresh_marginals)
         t = time.perf_counter()
+        # the odometry alone bounds the new graph's marginals from above (the working graph's
+        # remembered ones do not: it held more loops)
+        frames = np.arange(len(self.chain))
+        self._marginal = self.odometry_scale * self.chain.segment_covariance(np.zeros_like(frames), frames)
+        self._fresh_marginals = set()
         try:
             self._rebuild(np.concatenate(held) if held else np.zeros(0, dtype=np.int64))
             self._fate[universe] = Fate.REJECTED
+            # the refused parts that the graph of the larger parts proves implausible are left out
+            # (a false group claims a place that graph does not have): the accepted parts around
+            # them are tried together
+            order = [o for o in order if not o[1] or not self._implausible_now(o[3], most_queried=self.BUILD_QUERIES)]
             run: list[np.ndarray] = []  # accepted parts between two refused ones: tried together
             for _, refused, _, members in order + [(0, 1, 0, None)]:
                 if not refused:
                     run.append(members)
                     continue
+                bare = len(self.graph.loop_ids) == 0  # one step from the odometry alone says nothing
                 if run:
-                    self._try_again(np.concatenate(run))
+                    self._try_again(np.concatenate(run), solve=bare)
                     run = []
-                if members is not None:
-                    self._try_again(members)
+                    bare = False
+                if members is not None and not self._implausible_now(members, most_queried=self.BUILD_QUERIES):
+                    self._try_again(members, solve=bare)
             j_alternative = self._chi2_total() + gate * int(np.count_nonzero(self._fate[universe] != Fate.ACCEPTED))
         except OptimisationFailed as exc:
             log.warning("ilv+: the hypothesis built largest first failed (%s)", exc.message)
@@ -1640,11 +1688,13 @@ class ConsensusVerifier(WindowedVerifier):
         if j_alternative < j_working - self.plus.ambiguity_margin * gate:  # the trials' records stay
             left = accepted[~np.isin(accepted, now)]
             came = now[~np.isin(now, accepted)]
+            self._fate[left] = Fate.PENDING  # verified again in the new map, by the caller
             return [f"end of the log: the hypothesis built afresh from the clusters, largest first, has J lower by {j_working - j_alternative:.0f}: "
                     f"{len(came)} loops in, {len(left)} out"]
         self._retired_updates += self.graph.updates - saved[0].updates  # the count of updates goes on from here
         self.graph, self._fate, self._on_count, self._near_misses = saved[:4]
         del self.innovations[saved[4]:]
+        self._marginal, self._fresh_marginals = saved[5:]
         self._chi2_cache = None
         return []
 
@@ -1685,17 +1735,17 @@ class ConsensusVerifier(WindowedVerifier):
         for cluster in sorted(retry.values(), key=lambda c: (-c.size, c.id)):
             self._try_again(cluster.members[self._fate[cluster.members] == Fate.REJECTED])
 
-    def _try_again(self, members: np.ndarray) -> bool:
-        """Try refused ``members`` once more against the working hypothesis (:meth:`_trial`); if
-        they fail, the members that fit the failed solution are tried alone. Returns whether any
-        joined."""
+    def _try_again(self, members: np.ndarray, *, solve: bool = False) -> bool:
+        """Try refused ``members`` once more against the working hypothesis (:meth:`_trial`, with
+        ``solve``); if they fail, the members that fit the failed solution are tried alone.
+        Returns whether any joined."""
         self._fate[members] = Fate.PENDING
-        ok, _ = self._trial(members)
+        ok, _ = self._trial(members, solve=solve)
         fit = self.last_fit
         if not ok and fit is not None and 0 < fit.sum() < len(members):
             self._fate[members[~fit]] = Fate.REJECTED
             members = members[fit]
-            ok, _ = self._trial(members)
+            ok, _ = self._trial(members, solve=solve)
         self._fate[members] = Fate.ACCEPTED if ok else Fate.REJECTED
         return ok
 

@@ -174,6 +174,34 @@ def test_chain_segment_covariance_equals_gtsam_marginals():
         np.testing.assert_allclose(chain.segment_covariance(np.array([a]), np.array([b]))[0], jac @ joint @ jac.T, rtol=1e-6, atol=1e-12)
 
 
+def test_the_odometry_alone_bounds_the_marginals_of_a_graph_with_loops():
+    """``ilv+``'s hypothesis built largest first proves refused parts implausible with marginals
+    that must bound the new graph's from above: those of the odometry alone (from frame 0), since
+    loops only shrink them. A loose bound is useless, so it is tight where no loop holds yet."""
+    from lcv_replay.se2 import between as se2_between
+    from lcv_replay.verification.pose_graph import IncrementalGraph, LoopFactor
+
+    world = circle_world(num_false=0)
+    chain = ms.OdometryChain(ODOM_INFORMATION)
+    chain.extend(world.odom)
+    frames = np.arange(len(world.odom))
+    bound = chain.segment_covariance(np.zeros_like(frames), frames)
+    loops = [c for c in world.true_candidates if c.query_frame < 300][::3]
+    info = np.diag([25.0, 25.0, 400.0])
+    graph = IncrementalGraph(ODOM_INFORMATION)
+    graph.extend(world.odom)
+    graph.update(add=[(k, LoopFactor(c.match_frame, c.query_frame, se2_between(world.truth[c.match_frame], world.truth[c.query_frame]), info)) for k, c in enumerate(loops)])
+    held = max(c.query_frame for c in loops)
+    shrunk = []
+    for k in (5, 100, held, held + 40, len(frames) - 1):
+        marginal = graph.marginal_covariance(k)
+        gap = np.linalg.eigvalsh(bound[k] - marginal)
+        assert gap.min() > -1e-6 * np.abs(bound[k]).max()  # an upper bound (up to the prior and the linearisation point)
+        shrunk.append(np.trace(marginal) / np.trace(bound[k]))
+    assert shrunk[2] < 0.5  # the loops hold the frame they reach
+    assert shrunk[0] > 0.9  # and the first frames were held by the prior all along
+
+
 def test_reduced_graph_and_bridge_match_the_full_graph():
     world = circle_world(num_false=0)
     cons = as_constraints(world.true_candidates)
