@@ -56,6 +56,24 @@ def mahalanobis_d2(residuals: np.ndarray, covariances: np.ndarray) -> np.ndarray
     return np.einsum("ki,ki->k", residuals, solved)
 
 
+def left_out_d2(residuals: np.ndarray, loop_covariances: np.ndarray, held_covariance: np.ndarray) -> float | None:
+    """The innovation of ``L`` loops under the graph without them (linear-Gaussian), from the
+    graph that holds them: ``rᵀ (R - Σ)⁻¹ r`` with ``r`` their ``(L, 3)`` residuals stacked, ``R``
+    their ``(L, 3, 3)`` covariances block-diagonal and ``Σ`` the ``(3L, 3L)`` joint covariance of
+    their relative poses under the graph that holds them. ``None`` where ``R - Σ`` is singular:
+    they are the only evidence for their relative poses, so there is nothing to test them against.
+    """
+    residuals = np.asarray(residuals, dtype=np.float64).reshape(-1)
+    loop_covariances = np.asarray(loop_covariances, dtype=np.float64)
+    remaining = -np.asarray(held_covariance, dtype=np.float64)
+    for k, block in enumerate(loop_covariances):
+        remaining[3 * k : 3 * k + 3, 3 * k : 3 * k + 3] += block
+    remaining = 0.5 * (remaining + remaining.T)
+    if np.min(np.linalg.eigvalsh(remaining)) <= 1e-9 * float(np.trace(loop_covariances.sum(axis=0))):
+        return None
+    return float(residuals @ np.linalg.solve(remaining, residuals))
+
+
 class ConsistencyTable:
     """The hypotheses × constraints lookup table (see the module docstring).
 

@@ -527,20 +527,30 @@ class IncrementalGraph:
 
     def relative_covariance(self, match: int, query: int) -> np.ndarray:
         """``(3, 3)`` covariance of the relative pose ``x_match⁻¹ x_query`` under the graph
-        (GTSAM's joint marginal of the two frames from iSAM2's Bayes tree, transported as in
-        :func:`relative_covariances`; costly for two frames deep in the tree)."""
+        (:meth:`joint_relative_covariance` of one pair)."""
+        return self.joint_relative_covariance(np.array([match]), np.array([query]))
+
+    def joint_relative_covariance(self, match: np.ndarray, query: np.ndarray) -> np.ndarray:
+        """``(3L, 3L)`` joint covariance of the relative poses ``x_mₖ⁻¹ x_qₖ`` of ``L`` pairs under
+        the graph, stacked in order: GTSAM's joint marginal of their frames from iSAM2's Bayes
+        tree, transported as in :func:`relative_covariances` (costly for frames deep in the
+        tree, and grows with the number of frames)."""
         import gtsam
 
-        m, q = int(match), int(query)
+        match = np.asarray(match, dtype=np.int64).reshape(-1)
+        query = np.asarray(query, dtype=np.int64).reshape(-1)
+        frames = sorted(set(match.tolist()) | set(query.tolist()))
+        at = {f: 3 * i for i, f in enumerate(frames)}
         try:
-            joint = self._isam.jointMarginalCovariance(gtsam.KeyVector([m, q]))
-            block = np.block([[joint.at(m, m), joint.at(m, q)], [joint.at(q, m), joint.at(q, q)]])
+            joint = self._isam.jointMarginalCovariance(gtsam.KeyVector(frames))
+            block = np.block([[joint.at(a, b) for b in frames] for a in frames])
         except RuntimeError as exc:
-            raise OptimisationFailed(f"joint marginal of frames {m} and {q} failed: {_first_line(exc)}") from exc
+            raise OptimisationFailed(f"joint marginal of frames {frames[:4]}{' …' if len(frames) > 4 else ''} failed: {_first_line(exc)}") from exc
         x = self.estimate()
-        jac = np.zeros((3, 6))
-        jac[:, :3] = -se2.adjoint_inverse(se2.between(x[m], x[q]))
-        jac[:, 3:] = np.eye(3)
+        jac = np.zeros((3 * len(match), 3 * len(frames)))
+        for k, (m, q) in enumerate(zip(match.tolist(), query.tolist())):
+            jac[3 * k : 3 * k + 3, at[m] : at[m] + 3] = -se2.adjoint_inverse(se2.between(x[m], x[q]))
+            jac[3 * k : 3 * k + 3, at[q] : at[q] + 3] += np.eye(3)
         out = jac @ block @ jac.T
         return 0.5 * (out + out.T)
 
