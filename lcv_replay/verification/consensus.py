@@ -1453,8 +1453,9 @@ class ConsensusVerifier(WindowedVerifier):
             if c not in audited:
                 revisit = self._revisit_of(np.array([c]), accepted[~np.isin(accepted, out)])
                 if 1 < len(revisit) <= self.AUDIT_REVISIT_LOOPS:
-                    sigma = self._held_covariance(revisit)  # its blocks serve the loops alone
-                    for k, loop in enumerate(revisit.tolist() if sigma is not None else []):
+                    sigma = self._held_covariance(revisit)
+                if sigma is not None:  # its blocks serve the loops alone
+                    for k, loop in enumerate(revisit.tolist()):
                         held.setdefault(loop, sigma[3 * k : 3 * k + 3, 3 * k : 3 * k + 3])
             d2 = self._left_out_d2(x, np.array([c]), held.get(c))
             if d2 is not None and d2 >= self.gate_chi2:

@@ -340,7 +340,7 @@ def test_a_revisit_cut_short_by_the_window_end_does_not_lose_to_a_false_group_on
 @pytest.mark.parametrize(("seed", "group_size"), [(9104, 10), (9207, 10), (9300, 10), (9420, 10), (9421, 10), (9308, 10), (9804, 20), (9302, 10), (9755, 5), (9852, 20), (9404, 10), (9805, 20), (10301, 10), (10407, 5)])
 def test_fresh_heavy_tailed_rings_where_a_verdict_went_wrong(tmp_path, seed, group_size):
     """Rings of 2,000 poses with heavy-tailed odometry and 400 grouped outliers (in groups of 10,
-    or 20), on seeds drawn fresh; before each fix (measured; GNC-TLS accepts no false loop on
+    or of 5 or 20), on seeds drawn fresh; before each fix (measured; GNC-TLS accepts no false loop on
     any of them):
 
     * 9104: a false group of 8 loops bent the map at the second window and a true cluster of 6
@@ -410,7 +410,7 @@ def test_fresh_heavy_tailed_rings_where_a_verdict_went_wrong(tmp_path, seed, gro
       (bound 73.1), leave, and are refused when verified again: none, 0.984, 1.02 m (the
       oracle's 1.02).
 
-    GNC-TLS's recall on these rings is 0.80 to 0.87 (measured on twelve of the thirteen)."""
+    GNC-TLS's recall on these rings is 0.80 to 0.87 (measured on thirteen of the fourteen)."""
     row, oracle = _world_rows(tmp_path, "ring", 2000, 400, seed, methods=("ilv+", "oracle"), group_size=group_size)
     assert row.false_positives == 0
     assert row.recall >= 0.95
