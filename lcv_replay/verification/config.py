@@ -73,6 +73,7 @@ class IlvPlusConfig:
     # measured loops (the cluster-consensus verifier)
     cluster_span_frames: int = 10  # loops whose query and match frames both lie within this many frames are tested pairwise and clustered
     ambiguity_margin: float = 1.0  # a contest within this many gates of truncated cost is undecided: both sides are flagged ambiguous
+    count_ambiguity_margin: float = 10.0  # at the end of the log, a revisit the final map holds only on the truncated cost, and by fewer gates than this, is flagged ambiguous
     max_contests_per_window: int = 20  # alternative hypotheses solved per window (bounds the cost of a window)
     frontier_min_loops: int = 3  # a smaller cluster beyond every accepted loop waits one window for support (decided at the end of the log)
 
@@ -91,6 +92,7 @@ class IlvPlusConfig:
         require(0.5 < self.calibration_confidence < 1.0, "verification.ilv_plus.calibration_confidence", self.calibration_confidence, "a number in (0.5, 1)")
         require(self.cluster_span_frames >= 1, "verification.ilv_plus.cluster_span_frames", self.cluster_span_frames, "an integer >= 1")
         require(self.ambiguity_margin >= 0, "verification.ilv_plus.ambiguity_margin", self.ambiguity_margin, "a number >= 0")
+        require(self.count_ambiguity_margin >= self.ambiguity_margin, "verification.ilv_plus.count_ambiguity_margin", self.count_ambiguity_margin, "a number >= ambiguity_margin")
         require(self.frontier_min_loops >= 1, "verification.ilv_plus.frontier_min_loops", self.frontier_min_loops, "an integer >= 1")
         require(self.max_contests_per_window >= 0, "verification.ilv_plus.max_contests_per_window", self.max_contests_per_window, "an integer >= 0")
 
