@@ -1574,9 +1574,8 @@ class ConsensusVerifier(WindowedVerifier):
         accepted = self._ids(Fate.ACCEPTED)
         if len(accepted) == 0:
             return notes
-        suspects = [members for c, _ in sorted(self._on_count.items(), key=lambda kv: (-kv[1], kv[0])) if c in self.clusters
-                    for members in [self.clusters[c].members[self._fate[self.clusters[c].members] == Fate.ACCEPTED]]
-                    if len(members) >= self.plus.frontier_min_loops]
+        on_count = [c for c, _ in sorted(self._on_count.items(), key=lambda kv: (-kv[1], kv[0])) if c in self.clusters]
+        suspects = [members for members in (self._members({c}, Fate.ACCEPTED) for c in on_count) if len(members) >= self.plus.frontier_min_loops]
         suspects += self._lone_revisits_on_count(accepted)
         if not suspects:
             return notes
@@ -1678,8 +1677,10 @@ class ConsensusVerifier(WindowedVerifier):
         seen: set[int] = set()
         found: list[tuple[float, np.ndarray]] = []
         for c in np.unique(self._cluster_of[accepted]).tolist():
+            if c < 0:
+                continue
             members = accepted[self._cluster_of[accepted] == c]
-            if c < 0 or int(members[0]) in seen:
+            if int(members[0]) in seen:
                 continue
             q, m = self._q[members], self._m[members]
             box = by_query[np.searchsorted(queries, q.min() - span) : np.searchsorted(queries, q.max() + span, side="right")]
