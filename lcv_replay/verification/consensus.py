@@ -69,8 +69,10 @@ A small cluster beyond every accepted loop, the only hold on the free end of the
 any loop fits, waits one window for support; at the end of the log it is decided, the refused
 clusters whose opponents are still accepted (and hold no more loops) are contested once more
 (solved in full, or searched for a side among the suspects). Then a second hypothesis is built
-afresh on the odometry from the same clusters, largest first, and replaces the working one where
-its truncated cost is lower (:meth:`ConsensusVerifier._largest_first`): in the order the robot
+afresh on the odometry from the same clusters, largest first (twice: each trial judged on one
+Gauss-Newton step, and each solved in full; the lower truncated cost of the two competes), and
+replaces the working one where its truncated cost is lower
+(:meth:`ConsensusVerifier._largest_first`): in the order the robot
 drove, a false group that joined early bends the map the later revisits are judged in. Where it
 replaces it, the loops it left out and those the screen set aside are verified in its map, and
 the conflicts they name are contested as at a window. Clusters
@@ -252,6 +254,7 @@ class ConsensusVerifier(WindowedVerifier):
         self._near_misses: dict[int, float] = {}  # cluster id -> innovation / gate at its last solved refusal (0: deposed, or refused against a deposed cluster)
         self._on_count: dict[int, float] = {}  # cluster id -> innovation / cluster gate of a cluster accepted on the truncated cost alone
         self.innovations: list[tuple[int, float]] = []  # (loops, chi-square rise) of each cluster accepted by a solve
+        self._one_step_refusals = 0  # trials refused on one Gauss-Newton step, without a solve (_trial)
         self._ambiguous: list[tuple[set[int], set[int]]] = []  # contests neither side won: (incumbent, challenger) cluster ids
         self.gate_chi2 = self.plus.gate_chi2  # on innovations (see _recalibrate)
         self.pair_gate_chi2 = self.plus.gate_chi2  # on pairwise statistics (clusters)
@@ -951,6 +954,7 @@ class ConsensusVerifier(WindowedVerifier):
             step = self._chi2_total() - before
             x_step = self.graph.estimate()
             if step >= self.GROSS_FACTOR * gate_k and not solve:
+                self._one_step_refusals += 1
                 self.last_fit = self._residual_chi2(x_step, members) < self.gate_chi2
                 opponents = self._opponents(x_before, x_step, exclude=members)
                 self._apply(remove=members, relinearize=False)
@@ -1700,6 +1704,10 @@ class ConsensusVerifier(WindowedVerifier):
     #: Members of a refused part whose current marginals :meth:`_largest_first` queries to prove
     #: it implausible before trying it.
     BUILD_QUERIES = 3
+    #: The builds of :meth:`_largest_first`: each trial after the first judged on one
+    #: Gauss-Newton step (``False``), and the same with the accepted runs solved in full (``True``;
+    #: skipped where the first build refused no run on its one step, as it would repeat it).
+    BUILDS = (False, True)
 
     def _largest_first(self) -> list[str]:
         """At the end of the log, a second hypothesis built afresh on the odometry from the same
@@ -1707,7 +1715,9 @@ class ConsensusVerifier(WindowedVerifier):
         ones where they are ``frontier_min_loops`` or more, are tried in turn as two parts
         (:meth:`_try_again`; the accepted parts between two refused ones in that order together,
         and of two parts of one size the accepted one first; the first, tried against the
-        odometry alone, solved in full). A refused part that
+        odometry alone, solved in full). It is built twice (:data:`BUILDS`): each later trial
+        judged on one Gauss-Newton step, and the same with the accepted runs solved in full; the
+        build with the lower ``J`` competes. A refused part that
         the graph of the parts larger than every refused one proves implausible
         (:meth:`_implausible_now`, under the marginals of the odometry alone, which bound the new
         graph's from above, and the current ones of :data:`BUILD_QUERIES` members) is not tried.
@@ -1738,12 +1748,34 @@ class ConsensusVerifier(WindowedVerifier):
         far off for a true revisit. On s10301 the largest refused part, a true revisit of 444
         loops, was the first tried; refused on its one step, only the 61 loops that fitted the
         step joined (solved, all 444 fit, a rise of 7 per loop against a gate of 40): 30 false
-        loops, recall 0.359; now none, 0.978. Measured and not kept: every trial of the build
-        solved in full (at the end of the log every contest is). It also fixed s10308, where an
-        accepted run of 447 loops tried second kept 45 after one step and 381 solved, but broke
-        s10504 (groups of 20): a false group of 20, refused on one step, joined when solved, and
-        the build no longer won (14 false loops, recall 0.789); and on s9404 it took another false
-        group first (below).
+        loops, recall 0.359; now none, 0.978.
+
+        Why a second build with the accepted runs solved in full (:data:`BUILDS`), the lower
+        ``J`` of the two competing: one Gauss-Newton step can put a true run far off, and then
+        only the loops that fit the step join. On s10308 an accepted run of 447 loops tried
+        second kept 45 after one step (381 solved); on s9903 the one-step build held 229 loops.
+        With the runs solved, the builds' ``J`` are 19,318 and 16,310, against the working
+        hypotheses' 20,719 and 19,548 and the one-step builds' 24,980 and 24,303; the working
+        hypotheses, in a wrong minimum, held 30 and 10 false loops at recall 0.645 and 0.487,
+        and now none, at 0.970 and 0.870. The refused parts stay judged on one step: with every
+        trial solved, s10504 (groups of 20) took a false group of 20 that its one step refuses, and
+        that build's ``J`` was higher than the working one's (14 false loops, recall 0.789, when it
+        was the only build); on s9404 it took another false group first (below). Measured and not
+        kept: the second build with every trial solved (the same verdicts on s10308 and s9903, recall
+        0.881 on the latter, but 3.5 times the one-step build's time on s9804: 10.0 s against 2.8).
+        Where the first build refused no run on its one step, the second would repeat it, and is
+        not built (grouped city10000: every refused part is proven implausible, one run is tried,
+        and solved).
+
+        Measured and not kept: the accepted parts of a run tried one by one where they fail
+        together. A false group the working hypothesis accepted is an accepted part too, and it
+        spoils its run: on s11023 a run of seven true parts and a false group of 10 (248 loops)
+        failed, and so did the 237 that fitted its solution (4 of them false); both builds held 400
+        loops and lost (10 false loops in the working hypothesis, recall 0.736). Part by part, the
+        build won with none (recall 0.977), and on s10612 too (10 false loops -> none). But on s9804
+        (groups of 20) the build had taken a refused part of 19 true and 10 false loops first; the
+        run after it failed for them, and part by part it recovered enough true loops to win (``J``
+        lower by 15.9 gates): 20 false loops, where the working hypothesis holds none.
 
         Why the loops it left out are verified again, and their conflicts contested: the new
         hypothesis is greedy too, and its ``J`` is that of the whole. On s9805 (groups of 20) a
@@ -1802,8 +1834,36 @@ class ConsensusVerifier(WindowedVerifier):
         order = [o for o in order if -o[0] <= largest_refused]
         universe = np.concatenate([m for *_, m in order])
         j_working = self._chi2_total() + gate * int(np.count_nonzero(self._fate[universe] != Fate.ACCEPTED))
-        saved = (self.graph, self._fate.copy(), dict(self._on_count), dict(self._near_misses), len(self.innovations), self._marginal, self._fresh_marginals)
-        t = time.perf_counter()
+        working = self._hypothesis_state()
+        built: list[tuple[float, bool, tuple]] = []  # (J, runs solved, state) of each build
+        run_cut_short = False
+        for solve_runs in self.BUILDS:
+            if solve_runs and built and not run_cut_short:
+                break  # the last build solved every run already: it would be built again
+            self._set_hypothesis_state(working)
+            t = time.perf_counter()
+            j_alternative, run_cut_short = self._build_largest_first(held, order, universe, solve_runs=solve_runs)
+            log.debug("ilv+: largest first (%s): J %.1f against %.1f (%d loops against %d) in %.2f s", "runs solved" if solve_runs else "one step",
+                      j_alternative, j_working, len(self._ids(Fate.ACCEPTED)), len(accepted), time.perf_counter() - t)
+            built.append((j_alternative, solve_runs, self._hypothesis_state()))
+        j_alternative, solved, best = min(built, key=lambda b: b[0])
+        if j_alternative < j_working - self.plus.ambiguity_margin * gate:  # the trials' records stay
+            self._set_hypothesis_state(best)
+            now = self._ids(Fate.ACCEPTED)
+            left = accepted[~np.isin(accepted, now)]
+            came = now[~np.isin(now, accepted)]
+            self._fate[left] = Fate.PENDING  # verified again in the new map, by the caller
+            return [f"end of the log: the hypothesis built afresh from the clusters, largest first{', each accepted run solved,' if solved else ''} has J lower by "
+                    f"{j_working - j_alternative:.0f}: {len(came)} loops in, {len(left)} out"]
+        self._set_hypothesis_state(working)
+        return []
+
+    def _build_largest_first(self, held: list[np.ndarray], order: list[tuple[int, int, int, np.ndarray]], universe: np.ndarray, *, solve_runs: bool) -> tuple[float, bool]:
+        """One build of :meth:`_largest_first` in a new graph: the ``held`` parts at once, then
+        ``order``'s parts in turn, each trial after the first judged on one Gauss-Newton step,
+        but with ``solve_runs`` the accepted runs solved in full. Returns its ``J`` over
+        ``universe`` (``inf`` where GTSAM fails) and whether a run was refused on its one step."""
+        run_cut_short = False
         # the odometry alone bounds the new graph's marginals from above (the working graph's
         # remembered ones do not: it held more loops)
         frames = np.arange(len(self.chain))
@@ -1823,29 +1883,33 @@ class ConsensusVerifier(WindowedVerifier):
                     continue
                 bare = len(self.graph.loop_ids) == 0  # one step from the odometry alone says nothing
                 if run:
-                    self._try_again(np.concatenate(run), solve=bare)
+                    before = self._one_step_refusals
+                    self._try_again(np.concatenate(run), solve=bare or solve_runs)
+                    run_cut_short |= self._one_step_refusals > before
                     run = []
                     bare = False
                 if members is not None and not self._implausible_now(members, most_queried=self.BUILD_QUERIES):
                     self._try_again(members, solve=bare)
-            j_alternative = self._chi2_total() + gate * int(np.count_nonzero(self._fate[universe] != Fate.ACCEPTED))
         except OptimisationFailed as exc:
             log.warning("ilv+: the hypothesis built largest first failed (%s)", exc.message)
-            j_alternative = np.inf
-        now = self._ids(Fate.ACCEPTED)
-        log.debug("ilv+: largest first: J %.1f against %.1f (%d loops against %d) in %.2f s", j_alternative, j_working, len(now), len(accepted), time.perf_counter() - t)
-        if j_alternative < j_working - self.plus.ambiguity_margin * gate:  # the trials' records stay
-            left = accepted[~np.isin(accepted, now)]
-            came = now[~np.isin(now, accepted)]
-            self._fate[left] = Fate.PENDING  # verified again in the new map, by the caller
-            return [f"end of the log: the hypothesis built afresh from the clusters, largest first, has J lower by {j_working - j_alternative:.0f}: "
-                    f"{len(came)} loops in, {len(left)} out"]
-        self._retired_updates += self.graph.updates - saved[0].updates  # the count of updates goes on from here
-        self.graph, self._fate, self._on_count, self._near_misses = saved[:4]
-        del self.innovations[saved[4]:]
-        self._marginal, self._fresh_marginals = saved[5:]
+            return np.inf, run_cut_short
+        return self._chi2_total() + self.gate_chi2 * int(np.count_nonzero(self._fate[universe] != Fate.ACCEPTED)), run_cut_short
+
+    def _hypothesis_state(self) -> tuple:
+        """What trials change: the graph, the fates, the records of the clusters accepted on the
+        count, of the near misses and of the innovations, and the marginals in memory (a snapshot
+        for :meth:`_set_hypothesis_state`)."""
+        return (self.graph, self._fate.copy(), dict(self._on_count), dict(self._near_misses), list(self.innovations), self._marginal, set(self._fresh_marginals))
+
+    def _set_hypothesis_state(self, state: tuple) -> None:
+        """Go back to a :meth:`_hypothesis_state` (the count of iSAM2 updates goes on)."""
+        graph, fate, on_count, near_misses, innovations, marginal, fresh = state
+        self._retired_updates += self.graph.updates - graph.updates
+        self.graph = graph
+        self._fate, self._on_count, self._near_misses = fate.copy(), dict(on_count), dict(near_misses)
+        self.innovations = list(innovations)
+        self._marginal, self._fresh_marginals = marginal, set(fresh)
         self._chi2_cache = None
-        return []
 
     def _retry_near_misses(self, exclude: set[int] | frozenset[int] = frozenset()) -> None:
         """At the end of the log, try once more the refused loops of the clusters refused by a
