@@ -70,7 +70,8 @@ any loop fits, waits one window for support; at the end of the log it is decided
 clusters whose opponents are still accepted (and hold no more loops) are contested once more
 (solved in full, or searched for a side among the suspects). Then a second hypothesis is built
 afresh on the odometry from the same clusters, largest first (twice: each trial judged on one
-Gauss-Newton step, and each solved in full; the lower truncated cost of the two competes), and
+Gauss-Newton step, and the same with the accepted runs solved in full; the lower truncated cost
+of the two competes), and
 replaces the working one where its truncated cost is lower
 (:meth:`ConsensusVerifier._largest_first`): in the order the robot
 drove, a false group that joined early bends the map the later revisits are judged in. Where it
