@@ -1763,7 +1763,8 @@ class ConsensusVerifier(WindowedVerifier):
         that build's ``J`` was higher than the working one's (14 false loops, recall 0.789, when it
         was the only build); on s9404 it took another false group first (below). Measured and not
         kept: the second build with every trial solved (the same verdicts on s10308 and s9903, recall
-        0.881 on the latter, but 3.5 times the one-step build's time on s9804: 10.0 s against 2.8).
+        0.881 on the latter, but 3.5 times the one-step build's time on s9804: 10.0 s against 2.8,
+        measured with the part-by-part retry below in place).
         Where the first build refused no run on its one step, the second would repeat it, and is
         not built (grouped city10000: every refused part is proven implausible, one run is tried,
         and solved).
