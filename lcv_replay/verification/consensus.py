@@ -529,10 +529,14 @@ class ConsensusVerifier(WindowedVerifier):
         self._odometry_chi2_cache = [(x, n, value)] + self._odometry_chi2_cache[:3]
         return value
 
-    def _tls_cost(self, chi2_total: float) -> float:
-        """``J`` up to a constant: the chi-square plus one gate per loop not in the hypothesis."""
-        contestable = np.isin(self._fate, (Fate.ACCEPTED, Fate.REJECTED, Fate.AMBIGUOUS, Fate.PENDING))
-        left_out = int(np.count_nonzero(contestable & (self._fate != Fate.ACCEPTED)))
+    def _tls_cost(self, chi2_total: float, over: np.ndarray | None = None) -> float:
+        """``J`` up to a constant: the chi-square plus one gate per loop not in the hypothesis,
+        of the contestable loops or of the loops ``over``."""
+        if over is None:
+            contestable = np.isin(self._fate, (Fate.ACCEPTED, Fate.REJECTED, Fate.AMBIGUOUS, Fate.PENDING))
+            left_out = int(np.count_nonzero(contestable & (self._fate != Fate.ACCEPTED)))
+        else:
+            left_out = int(np.count_nonzero(self._fate[over] != Fate.ACCEPTED))
         return chi2_total + self.gate_chi2 * left_out
 
     def cluster_gate(self, size: int) -> float:
@@ -1835,7 +1839,7 @@ class ConsensusVerifier(WindowedVerifier):
         held = [members for size, _, _, members in order if -size > largest_refused]
         order = [o for o in order if -o[0] <= largest_refused]
         universe = np.concatenate([m for *_, m in order])
-        j_working = self._chi2_total() + gate * int(np.count_nonzero(self._fate[universe] != Fate.ACCEPTED))
+        j_working = self._tls_cost(self._chi2_total(), over=universe)
         working = self._hypothesis_state()
         built: list[tuple[float, bool, tuple]] = []  # (J, runs solved, state) of each build
         run_cut_short = False
@@ -1895,7 +1899,7 @@ class ConsensusVerifier(WindowedVerifier):
         except OptimisationFailed as exc:
             log.warning("ilv+: the hypothesis built largest first failed (%s)", exc.message)
             return np.inf, run_cut_short
-        return self._chi2_total() + self.gate_chi2 * int(np.count_nonzero(self._fate[universe] != Fate.ACCEPTED)), run_cut_short
+        return self._tls_cost(self._chi2_total(), over=universe), run_cut_short
 
     def _hypothesis_state(self) -> tuple:
         """What trials change: the graph, the fates, the records of the clusters accepted on the
