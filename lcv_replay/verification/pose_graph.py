@@ -23,6 +23,7 @@ the odometry chain in :mod:`lcv_replay.verification.measurements`) lives outside
 
 from __future__ import annotations
 
+import itertools
 import logging
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal, NamedTuple, Sequence
@@ -318,6 +319,15 @@ def relative_covariances(graph, poses: np.ndarray, keys: Sequence[int], match: n
 _MARGINAL_CHUNK = 32
 
 
+#: Serial numbers of :class:`IncrementalGraph` linearisation histories (:attr:`IncrementalGraph.epoch`).
+_EPOCHS = itertools.count()
+
+
+def pair_frames(match: np.ndarray, query: np.ndarray) -> list[int]:
+    """The distinct frames of the pairs ``(match, query)``, increasing."""
+    return sorted(set(np.asarray(match, dtype=np.int64).reshape(-1).tolist()) | set(np.asarray(query, dtype=np.int64).reshape(-1).tolist()))
+
+
 class IncrementalGraph:
     """The odometry chain plus a changing set of loop factors, kept solved by iSAM2
     (``gtsam.ISAM2``): ``ilv+``'s working hypothesis.
@@ -334,6 +344,15 @@ class IncrementalGraph:
         odom_information: ``(3, 3)`` information of one odometry step.
         relinearize_threshold: iSAM2's relinearisation threshold (tangent-space units).
         max_relinearizations: extra relinearisation steps after each update.
+
+    Attributes:
+        epoch: the serial number of this graph's linearisation history: new at construction and
+            at each :meth:`restart`. Within one epoch, a graph that holds every loop it held at
+            an earlier :attr:`version` (:meth:`holds_loops_of`), and maybe more, gives covariances
+            of relative poses no larger than it gave then, up to the relinearisation of the
+            poses that moved (the frames' own marginals, in the tangent space at each pose, can
+            turn with them).
+        version: bumped by each update and restart.
     """
 
     def __init__(self, odom_information: np.ndarray, *, relinearize_threshold: float = 0.05, max_relinearizations: int = 2):
@@ -355,6 +374,10 @@ class IncrementalGraph:
         self._last_estimate = np.zeros((0, 3))  # the latest estimate computed (kept across updates)
         self.max_relinearizations = int(max_relinearizations)
         self.updates = 0  # iSAM2 update calls so far (for timings)
+        self.epoch = next(_EPOCHS)  # changes at each restart, unique across graphs (see :attr:`epoch`)
+        self.version = 0  # bumped by each change (see :meth:`holds_loops_of`)
+        self._added_at: dict[int, int] = {}  # loop id -> the version that added it
+        self._lost: list[tuple[int, int]] = []  # (version added, version removed) of each loop removed, in order
 
     def __len__(self) -> int:
         return len(self._odom)
@@ -438,12 +461,15 @@ class IncrementalGraph:
             self._refactor_qr(add, remove, relinearize)
             return
         offset = factors.size() - len(added_ids)  # the odometry factors come first
+        self.version += 1
         for k, (loop_id, (_, loop)) in enumerate(zip(added_ids, add)):
             self._slots[loop_id] = int(new_slots[offset + k])
             self._loops[loop_id] = loop
+            self._added_at[loop_id] = self.version
         self._loop_id_array = None
         for loop_id in remove:
             self._loops.pop(loop_id, None)
+            self._lost.append((self._added_at.pop(int(loop_id)), self.version))
         self._pending_from = n
         self._estimate = None
 
@@ -495,6 +521,7 @@ class IncrementalGraph:
             self._loops = replaced
         loops = sorted(self._loops.items())
         self._isam = gtsam.ISAM2(self._params)
+        self.epoch = next(_EPOCHS)
         self._slots, self._loops = {}, {}
         self._loop_id_array = None
         self._pending_from, self._estimate = 0, None
@@ -511,11 +538,24 @@ class IncrementalGraph:
             raise OptimisationFailed(f"iSAM2 restart failed: {_first_line(exc)}") from exc
         new_slots = list(result.getNewFactorsIndices())
         offset = factors.size() - len(loops)
+        self.version += 1
+        self._added_at, self._lost = {}, []
         for k, (loop_id, loop) in enumerate(loops):
             self._slots[loop_id] = int(new_slots[offset + k])
             self._loops[loop_id] = loop
+            self._added_at[loop_id] = self.version
         self._loop_id_array = None
         self._pending_from = n
+
+    def holds_loops_of(self, version: int) -> bool:
+        """Whether the graph holds every loop it held at ``version`` (of its current
+        :attr:`epoch`): none of them was removed since."""
+        for added, removed in reversed(self._lost):
+            if removed <= version:
+                return True
+            if added <= version:
+                return False
+        return True
 
     def marginal_covariance(self, frame: int) -> np.ndarray:
         """``(3, 3)`` marginal covariance of frame ``frame`` (right perturbation at its estimate),
@@ -532,26 +572,37 @@ class IncrementalGraph:
 
     def joint_relative_covariance(self, match: np.ndarray, query: np.ndarray) -> np.ndarray:
         """``(3L, 3L)`` joint covariance of the relative poses ``x_mₖ⁻¹ x_qₖ`` of ``L`` pairs under
-        the graph, stacked in order: GTSAM's joint marginal of their frames from iSAM2's Bayes
-        tree, transported as in :func:`relative_covariances` (costly for frames deep in the
-        tree, and grows with the number of frames)."""
+        the graph, stacked in order: :meth:`joint_marginal` of their frames, transported at the
+        current estimate (:meth:`transport`)."""
+        frames = pair_frames(match, query)
+        return self.transport(match, query, frames, self.joint_marginal(frames))
+
+    def joint_marginal(self, frames: Sequence[int]) -> np.ndarray:
+        """``(3F, 3F)`` joint marginal covariance of ``frames`` (distinct, in that order), GTSAM's
+        from iSAM2's Bayes tree (costly for frames deep in the tree, and grows with the number of
+        frames)."""
         import gtsam
 
-        match = np.asarray(match, dtype=np.int64).reshape(-1)
-        query = np.asarray(query, dtype=np.int64).reshape(-1)
-        frames = sorted(set(match.tolist()) | set(query.tolist()))
-        at = {f: 3 * i for i, f in enumerate(frames)}
+        frames = [int(f) for f in frames]
         try:
             joint = self._isam.jointMarginalCovariance(gtsam.KeyVector(frames))
-            block = np.block([[joint.at(a, b) for b in frames] for a in frames])
+            return np.block([[joint.at(a, b) for b in frames] for a in frames])
         except RuntimeError as exc:
             raise OptimisationFailed(f"joint marginal of frames {frames[:4]}{' …' if len(frames) > 4 else ''} failed: {_first_line(exc)}") from exc
+
+    def transport(self, match: np.ndarray, query: np.ndarray, frames: Sequence[int], joint: np.ndarray) -> np.ndarray:
+        """``(3L, 3L)`` covariance of the relative poses ``x_mₖ⁻¹ x_qₖ`` from ``joint``, the
+        :meth:`joint_marginal` of ``frames`` (which hold every ``mₖ`` and ``qₖ``), transported
+        at the current estimate as in :func:`relative_covariances`."""
+        match = np.asarray(match, dtype=np.int64).reshape(-1)
+        query = np.asarray(query, dtype=np.int64).reshape(-1)
+        at = {int(f): 3 * i for i, f in enumerate(frames)}
         x = self.estimate()
-        jac = np.zeros((3 * len(match), 3 * len(frames)))
+        jac = np.zeros((3 * len(match), 3 * len(at)))
         for k, (m, q) in enumerate(zip(match.tolist(), query.tolist())):
             jac[3 * k : 3 * k + 3, at[m] : at[m] + 3] = -se2.adjoint_inverse(se2.between(x[m], x[q]))
             jac[3 * k : 3 * k + 3, at[q] : at[q] + 3] += np.eye(3)
-        out = jac @ block @ jac.T
+        out = jac @ joint @ jac.T
         return 0.5 * (out + out.T)
 
     def estimate(self) -> np.ndarray:

@@ -122,6 +122,78 @@ def test_the_leave_out_statistic_of_a_revisit_is_the_rise_its_loops_cause_togeth
     assert left_out([lone]) is None
 
 
+def test_the_audit_reuses_earlier_marginals_for_its_passes_and_queries_current_ones_for_its_failures(monkeypatch):
+    """The audit's leave-out tests first use a revisit's joint marginal queried at an earlier
+    window (it bounds the current one: a pass under it is a pass now), and a test that fails
+    under one queries the current marginal, which decides: the verdicts are those of current
+    marginals, with fewer queries of iSAM2's Bayes tree."""
+    from lcv_replay.verification import pose_graph
+
+    world = circle_world(frames_per_lap=200, laps=3.0, true_every=2, num_false=0, yaw_bias_rad=0.0002)
+    true = [_loop(world, q, q - 200) for q in range(205, 600, 2)]
+    group = [_loop(world, q, q - 150, T_match_query=(0.05, -0.02, 0.01)) for q in range(300, 310)]
+    queries = []
+    joint_marginal = pose_graph.IncrementalGraph.joint_marginal
+    monkeypatch.setattr(pose_graph.IncrementalGraph, "joint_marginal", lambda graph, frames: queries.append(frames) or joint_marginal(graph, frames))
+    verifier, _, result = _run(world, true + group)
+    with_earlier = len(queries)
+    assert {result.constraints[i].candidate.pair for i in result.accepted_constraint_ids} == {c.pair for c in true}
+
+    covariance = ConsensusVerifier._audit_covariance
+    monkeypatch.setattr(ConsensusVerifier, "_audit_covariance", lambda v, members, *, earlier: covariance(v, members, earlier=False))
+    queries.clear()
+    _, _, current = _run(world, true + group)
+    assert current.accepted_constraint_ids == result.accepted_constraint_ids
+    assert with_earlier < len(queries)
+    monkeypatch.undo()
+
+    # a loop of a revisit whose marginal is remembered, moved 2 m: it fails under the earlier
+    # marginal, so the current one is queried, and the loop leaves the hypothesis
+    accepted = verifier._ids(Fate.ACCEPTED)
+    c = int(accepted[len(accepted) // 2])
+    revisit = verifier._revisit_of(np.array([c]), accepted)
+    tested = revisit if 1 < len(revisit) <= verifier.AUDIT_REVISIT_LOOPS else np.array([c])  # a long revisit: the loop alone
+    verifier._audit_covariance(tested, earlier=True)
+    assert verifier._audit_covariance(tested, earlier=True)[1]  # remembered
+    verifier._z = verifier._z.copy()
+    verifier._z[c] = se2_compose(verifier._z[c], np.array([2.0, 0.0, 0.0]))
+    queries.clear()
+    monkeypatch.setattr(pose_graph.IncrementalGraph, "joint_marginal", lambda graph, frames: queries.append(frames) or joint_marginal(graph, frames))
+    assert verifier._audit_suspects(verifier.graph.estimate(), accepted, np.array([c])) == [c]
+    assert len(queries) == 1  # the current marginal, queried once the earlier one had failed it
+    verifier._audit()
+    assert verifier._fate[c] != Fate.ACCEPTED and c not in verifier.graph.loop_ids
+
+
+def test_no_hypothesis_is_built_largest_first_where_every_refused_part_is_proven_implausible(monkeypatch):
+    """At the end of the log the hypothesis built largest first tries the refused parts that its
+    graph does not prove implausible; where none is left, it could hold only the working
+    hypothesis' loops, and the run of those is not tried again (grouped city10000: about 2 s)."""
+    world = circle_world(frames_per_lap=200, laps=2.0, true_every=2, num_false=0, yaw_bias_rad=0.0002)
+    # a dense revisit, and a sparse one whose loops are parts smaller than the refused group
+    true = [_loop(world, q, q - 200) for q in [*range(205, 330, 2), *range(355, 400, 15)]]
+    # a group 5 frames off the sparse revisit, its relative poses 0.3 rad off: the screen lets
+    # it through, its trial refuses it, and the final map proves it implausible
+    group = [_loop(world, q, q - 195, T_match_query=se2_compose(se2_between(world.truth[q - 195], world.truth[q]), np.array([0.0, 0.0, 0.3]))) for q in range(340, 350)]
+    built, tried = [], []
+    build, try_again = ConsensusVerifier._build_largest_first, ConsensusVerifier._try_again
+
+    def recorded_build(verifier, held, order, universe, *, solve_runs):
+        built.append(sum(len(o[3]) for o in order if o[1]))  # refused loops offered to the build
+        tried_before = len(tried)
+        out = build(verifier, held, order, universe, solve_runs=solve_runs)
+        built.append(len(tried) - tried_before)
+        return out
+
+    monkeypatch.setattr(ConsensusVerifier, "_build_largest_first", recorded_build)
+    monkeypatch.setattr(ConsensusVerifier, "_try_again", lambda v, members, *, solve=False: tried.append(len(members)) or try_again(v, members, solve=solve))
+    verifier, _, result = _run(world, true + group)
+    assert built == [6, 0]  # one build, offered the refused parts (6 of the group's loops), tried nothing
+    constraints = result.constraints
+    assert all(verifier._fate[i] == Fate.REJECTED for i, c in enumerate(constraints) if c.candidate.pair in {g.pair for g in group})
+    assert {result.constraints[i].candidate.pair for i in result.accepted_constraint_ids} == {c.pair for c in true}
+
+
 def test_two_groups_that_explain_a_free_end_equally_well_are_flagged_ambiguous():
     """After a long open traverse (the odometry alone holds 130 frames, several metres of
     uncertainty), two groups of five loops place the end of the trajectory three frames (6 m)

@@ -265,6 +265,61 @@ def test_incremental_graph_matches_a_batch_solve_and_undoes_a_step_exactly():
         graph.update(remove=[12345])
 
 
+def test_a_joint_marginal_queried_earlier_bounds_the_current_one_while_the_graph_holds_more_loops():
+    """``ilv+``'s audit reuses a revisit's joint marginal queried at an earlier window, where the
+    graph still holds every loop it held then: more frames and loops only add information, so
+    the covariance of the revisit's relative poses under the earlier marginal bounds the current
+    one from above, and the leave-out statistic under it is no smaller than the current one: a
+    pass under it is a pass now (up to the relinearisation of the poses that moved, which on
+    this circle leaves the relative poses' covariances ordered but not the frames' own). A
+    restart relinearises everything and starts a new epoch, as does another graph."""
+    from lcv_replay.se2 import between as se2_between
+    from lcv_replay.verification.consistency import left_out_d2
+    from lcv_replay.verification.pose_graph import IncrementalGraph, LoopFactor, pair_frames
+
+    world = circle_world(frames_per_lap=200, laps=2.0, true_every=2, num_false=0, yaw_bias_rad=0.0002)
+    info = np.diag([100.0, 100.0, 10000.0])
+    rng = np.random.default_rng(3)
+
+    def loop(q):
+        z = se2.compose(se2_between(world.truth[q - 200], world.truth[q]), rng.normal(0.0, [0.1, 0.1, 0.01]))
+        return LoopFactor(q - 200, q, z, info)
+
+    graph = IncrementalGraph(ODOM_INFORMATION)
+    graph.extend(world.odom[:260])
+    graph.update(add=[(q, loop(q)) for q in range(205, 260, 4)])
+    revisit = [q for q in range(229, 245, 4)]
+    m, q = np.array([k - 200 for k in revisit]), np.array(revisit)
+    frames = pair_frames(m, q)
+    assert frames == sorted(set(m.tolist()) | set(q.tolist()))
+    epoch, version, earlier = graph.epoch, graph.version, graph.joint_marginal(frames)
+    graph.extend(world.odom)
+    graph.update(add=[(k, loop(k)) for k in range(261, 400, 4)] + [(k, loop(k)) for k in range(231, 245, 4)])
+    graph.update(add=[(1000, loop(300))], relinearize=False)
+    graph.update(remove=[1000], relinearize=False)  # a trial undone: a loop added after, removed
+    assert graph.epoch == epoch and graph.holds_loops_of(version)
+    now = graph.joint_marginal(frames)
+    # the relative poses' covariance, what the audit tests with, is ordered; the frames' own
+    # (absolute, in the tangent space at each pose) are not quite: the map was relinearised
+    held_earlier, held_now = graph.transport(m, q, frames, earlier), graph.transport(m, q, frames, now)
+    assert np.linalg.eigvalsh(held_earlier - held_now).min() > 0.0
+    assert np.trace(held_now) < 0.95 * np.trace(held_earlier)  # the new loops hold the revisit
+    assert np.linalg.eigvalsh(earlier - now).min() < 0.0 < np.linalg.eigvalsh(earlier - now).max()
+    np.testing.assert_allclose(graph.transport(m, q, frames, now), graph.joint_relative_covariance(m, q), rtol=1e-12, atol=1e-15)
+    x = graph.estimate()
+    factors = [loop(k) for k in revisit]
+    r = se2.between_residuals(x, m, q, np.array([f.measured for f in factors]))
+    covariances = np.array([np.linalg.inv(f.information) for f in factors])
+    under_earlier = left_out_d2(r, covariances, graph.transport(m, q, frames, earlier))
+    under_now = left_out_d2(r, covariances, graph.transport(m, q, frames, now))
+    assert under_now is not None and under_earlier is not None and under_earlier > under_now
+    graph.update(remove=[209])  # a loop it held then
+    assert not graph.holds_loops_of(version) and graph.holds_loops_of(graph.version)
+    graph.restart(x)
+    assert graph.epoch != epoch
+    assert IncrementalGraph(ODOM_INFORMATION).epoch not in (epoch, graph.epoch)
+
+
 def test_incremental_graph_refactors_with_qr_where_cholesky_calls_stiff_odometry_indeterminate():
     """Odometry declared far stiffer across than along the road (5 cm along, 1.6 mm across,
     0.011 rad of yaw per step): GTSAM 4.3's iSAM2 Cholesky calls a plain chain of 400 frames
