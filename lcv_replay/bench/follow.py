@@ -71,9 +71,9 @@ def _rewrite_live(source: Path, dest: Path, frames: int, rate_hz: float, landed:
                 for frame in reader.frames():
                     if frame.index >= frames:
                         break
-                    due = t0 + frame.index / rate_hz
-                    if due > time.monotonic():
-                        time.sleep(due - time.monotonic())
+                    wait_s = t0 + frame.index / rate_hz - time.monotonic()  # read once: it may pass between two reads
+                    if wait_s > 0:
+                        time.sleep(wait_s)
                     writer.write_frame(frame.index, frame.stamp_ns, odom=frame.odom, ground_truth=frame.ground_truth)
                     for candidate in frame.candidates:
                         writer.write_loop_candidate(candidate, frame.stamp_ns)

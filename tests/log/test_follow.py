@@ -169,6 +169,34 @@ def test_an_interrupted_live_recording_is_a_valid_shorter_log(tmp_path: Path) ->
         assert np.allclose(log.odometry()[:, 0], range(5))
 
 
+def test_bench_follow_paces_its_writer_without_a_negative_sleep(kitti07, tmp_path: Path, monkeypatch) -> None:
+    """The writer of ``bench follow`` waits for each frame's due time. It read the clock twice,
+    to test and to sleep; on a loaded machine (CI, 2026-12-03) the due time passed between the
+    two reads and ``time.sleep`` refused the negative length. A clock that moves 0.3 ms a read,
+    at 1 kHz, puts the due time between the two reads of every frame."""
+    import threading
+
+    from lcv_replay.bench import follow as bench_follow
+
+    class Clock:
+        now_s = 0.0
+
+        def monotonic(self) -> float:
+            self.now_s += 0.0003
+            return self.now_s
+
+        def sleep(self, seconds: float) -> None:
+            if seconds < 0:
+                raise ValueError("sleep length must be non-negative")
+            self.now_s += seconds
+
+    monkeypatch.setattr(bench_follow, "time", Clock())
+    landed: dict[int, float] = {}
+    failure: list = []
+    bench_follow._rewrite_live(kitti07["finished"], tmp_path / "live.mcap", 20, 1000.0, landed, threading.Event(), failure)
+    assert failure == [] and sorted(landed) == list(range(20))
+
+
 def test_bench_follow_and_bench_rosbag_print_tables(kitti07, tmp_path: Path) -> None:
     import json
 
