@@ -371,6 +371,7 @@ class IncrementalGraph:
         self._params = params
         self.factorization = "CHOLESKY"  # iSAM2's; QR after a Cholesky failure (see update)
         self._estimate: np.ndarray | None = None
+        self._linearization: np.ndarray | None = None  # iSAM2's linearisation point (cached until it moves)
         self._last_estimate = np.zeros((0, 3))  # the latest estimate computed (kept across updates)
         self.max_relinearizations = int(max_relinearizations)
         self.updates = 0  # iSAM2 update calls so far (for timings)
@@ -450,11 +451,14 @@ class IncrementalGraph:
             result = self._isam.update(factors, values, removed, force_relinearize=relinearize)
             self.updates += 1
             new_slots = list(result.getNewFactorsIndices())
+            if values.size() or result.getVariablesRelinearized():
+                self._linearization = None
             for _ in range(self.max_relinearizations if relinearize and result.getVariablesRelinearized() else 0):
                 again = self._isam.update(force_relinearize=True)
                 self.updates += 1
                 if again.getVariablesRelinearized() == 0:
                     break
+                self._linearization = None
         except RuntimeError as exc:
             if self.factorization == "QR" or "Indeterminate" not in str(exc):
                 raise OptimisationFailed(f"iSAM2 update failed: {_first_line(exc)}") from exc
@@ -524,7 +528,7 @@ class IncrementalGraph:
         self.epoch = next(_EPOCHS)
         self._slots, self._loops = {}, {}
         self._loop_id_array = None
-        self._pending_from, self._estimate = 0, None
+        self._pending_from, self._estimate, self._linearization = 0, None, None
         factors = gtsam.NonlinearFactorGraph()
         factors.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*self._odom[0]), gtsam.noiseModel.Isotropic.Sigma(3, PRIOR_SIGMA)))
         steps = se2.between(self._odom[:-1], self._odom[1:])
@@ -606,13 +610,24 @@ class IncrementalGraph:
         return 0.5 * (out + out.T)
 
     def estimate(self) -> np.ndarray:
-        """``(N', 3)`` current estimate of the frames in the graph (cached until the next update)."""
+        """``(N', 3)`` current estimate of the frames in the graph (cached until the next update).
+
+        iSAM2's ``calculateEstimate``, computed here: its linearisation point (fetched again only
+        after a relinearisation) retracted by its delta (``Pose2.retract`` is ``Expmap``), in
+        numpy. GTSAM's retracts into a new ``Values`` of every pose, which is read back pose by
+        pose: grouped city10000, 312 estimates of 10k poses, 6.0 s -> about 2.5 s. The two agree
+        to rounding (checked in the tests)."""
         if self._estimate is None:
             import gtsam
 
             if self._pending_from == 0:
                 return np.zeros((0, 3))
-            poses = np.asarray(gtsam.utilities.extractPose2(self._isam.calculateEstimate()), dtype=np.float64)
+            if self._linearization is None:
+                self._linearization = np.asarray(gtsam.utilities.extractPose2(self._isam.getLinearizationPoint()), dtype=np.float64)
+            delta = np.asarray(self._isam.getDelta().vector(), dtype=np.float64)  # in key order: GTSAM's VectorValues is an ordered map
+            if delta.shape != (3 * len(self._linearization),):
+                raise OptimisationFailed(f"iSAM2 returned a delta of {delta.size} values for {len(self._linearization)} poses")
+            poses = se2.compose(self._linearization, se2.expmap(delta.reshape(-1, 3)))
             if not np.isfinite(poses.sum()):
                 raise OptimisationFailed("iSAM2 produced a non-finite estimate")
             self._estimate = self._last_estimate = poses
