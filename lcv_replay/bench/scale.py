@@ -13,6 +13,13 @@ the suite builds them (cached in its work folder), every method runs on each, an
   Its time grows with the graph (a loop into old frames re-eliminates the Bayes tree between
   them); the ratio of the two is what the verification costs on top of the smoother the robot
   runs anyway.
+
+With ``repeat`` (``--repeat N``), each log is verified in ``N`` rounds, every method once a round,
+the order reversed every other round so that a machine that slows down or speeds up during a run
+weighs on both sides alike. A round's ratio is taken between runs that ran one after the other;
+the report gives the median over the rounds and their range, which is what a shared, noisy
+machine can honestly claim. Logs built elsewhere (``logs``, ``--log``: a Vertigo case that
+``bench suite`` built, a field log) are timed the same way.
 """
 
 from __future__ import annotations
@@ -57,6 +64,9 @@ class ScaleRun:
     recall: float | None
     false_positives: int | None
     windows: tuple[WindowTime, ...] = ()
+    round_times_s: tuple[float, ...] = ()
+    """The wall time of each round (``wall_time_s`` is their median); the windows are the first
+    round's."""
 
 
 @dataclass(frozen=True)
@@ -68,11 +78,30 @@ class ScaleReport:
     runs: tuple[ScaleRun, ...]
     config: dict[str, Any] = field(default_factory=dict)
     load_average: tuple[float, float, float] | None = None
+    repeat: int = 1
+
+    def ratios(self, case: str, reference: str) -> tuple[float, ...]:
+        """The method's time over ``reference``'s on ``case``, round by round (empty if either
+        is missing or a reference time is zero)."""
+        runs = {r.method: r for r in self.runs if r.case == case}
+        mine, other = runs.get(self.method), runs.get(reference)
+        if mine is None or other is None:
+            return ()
+        if len(mine.round_times_s) != len(other.round_times_s) or not mine.round_times_s:
+            return (mine.wall_time_s / other.wall_time_s,) if other.wall_time_s > 0 else ()
+        if min(other.round_times_s) <= 0:
+            return ()
+        return tuple(a / b for a, b in zip(mine.round_times_s, other.round_times_s))
 
     def as_dict(self) -> dict[str, Any]:
         return {
             "method": self.method,
             "references": list(self.references),
+            "repeat": self.repeat,
+            "ratios": {
+                case: {ref: list(self.ratios(case, ref)) for ref in self.references}
+                for case in dict.fromkeys(r.case for r in self.runs)
+            },
             "load_average": list(self.load_average) if self.load_average else None,
             "config": self.config,
             "runs": [_json_ready(asdict(r)) for r in self.runs],
@@ -162,56 +191,92 @@ def run_scale(
     workdir: Path,
     config: VerificationConfig | None = None,
     on_run: Callable[[ScaleRun], None] | None = None,
+    logs: Sequence[Path] = (),
+    repeat: int = 1,
 ) -> ScaleReport:
-    """Build each case's log (cached) and run ``method`` and the ``references`` on it."""
+    """Build each case's log (cached), then run ``method`` and the ``references`` on it and on
+    each of ``logs``, in ``repeat`` rounds (the order reversed every other round); ``on_run`` is
+    called after each method's last round."""
     import os
 
     from lcv_replay.bench.suite import build_case_log
-    from lcv_replay.bench.verify import load_inputs, verify_inputs
+    from lcv_replay.bench.verify import load_inputs
     from lcv_replay.config import to_dict
-    from lcv_replay.verification.base import default_informations
 
+    if repeat < 1:
+        raise ValueError(f"repeat must be >= 1, got {repeat}")
     config = config or VerificationConfig()
     runs: list[ScaleRun] = []
-    for case in cases:
-        built = build_case_log(case, data_dir, workdir)
-        inputs = load_inputs(built.path, require_candidates=False)
-        for name in (method, *references):
-            verified = verify_inputs(inputs, name, config, case=case.name)
-            row = verified.row
-            steps = list(verified.steps)
-            last = verified.result.last_step
-            if last is not None and (not steps or steps[-1] is not last):
-                steps.append(last)
-            windows: tuple[WindowTime, ...] = ()
-            if name == method:
-                odometry_information, loop_information = default_informations(config, inputs.odometry_information)
-                backend = backend_window_times(inputs.odometry, odometry_information, loop_information, verified.result.constraints, steps)
-                windows = window_times(steps, verified.window_times_s, backend)
-            run = ScaleRun(
-                case=case.name,
-                poses=inputs.frames,
-                method=name,
-                constraints=row.constraints,
-                wall_time_s=row.wall_time_s,
-                precision=row.precision,
-                recall=row.recall,
-                false_positives=row.false_positives,
-                windows=windows,
-            )
-            runs.append(run)
-            if on_run is not None:
-                on_run(run)
+    sources: list[tuple[str, Callable[[], Path]]] = [(c.name, lambda c=c: build_case_log(c, data_dir, workdir).path) for c in cases]
+    sources += [(Path(p).stem, lambda p=p: Path(p)) for p in logs]
+    for name, path in sources:
+        inputs = load_inputs(path(), require_candidates=False)
+        runs.extend(_time_rounds(name, inputs, (method, *references), method, config, repeat, on_run))
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
-    return ScaleReport(method, tuple(references), tuple(runs), to_dict(config), load)
+    return ScaleReport(method, tuple(references), tuple(runs), to_dict(config), load, repeat)
+
+
+def _time_rounds(case: str, inputs, methods: Sequence[str], measured: str, config: VerificationConfig, repeat: int, on_run) -> list[ScaleRun]:
+    """``methods`` on one log, ``repeat`` rounds (every other one in reverse order); one
+    :class:`ScaleRun` per method, with the first round's verdict and windows, and the back end
+    timed on ``measured``'s windows."""
+    from lcv_replay.bench.verify import verify_inputs
+    from lcv_replay.verification.base import default_informations
+
+    first: dict[str, Any] = {}
+    times: dict[str, list[float]] = {name: [] for name in methods}
+    for k in range(repeat):
+        for name in (methods if k % 2 == 0 else tuple(reversed(methods))):
+            verified = verify_inputs(inputs, name, config, case=case)
+            times[name].append(float(verified.row.wall_time_s))
+            first.setdefault(name, verified)
+    runs = []
+    for name in methods:
+        verified = first[name]
+        row = verified.row
+        steps = list(verified.steps)
+        last = verified.result.last_step
+        if last is not None and (not steps or steps[-1] is not last):
+            steps.append(last)
+        windows: tuple[WindowTime, ...] = ()
+        if name == measured:
+            odometry_information, loop_information = default_informations(config, inputs.odometry_information)
+            backend = backend_window_times(inputs.odometry, odometry_information, loop_information, verified.result.constraints, steps)
+            windows = window_times(steps, verified.window_times_s, backend)
+        run = ScaleRun(
+            case=case,
+            poses=inputs.frames,
+            method=name,
+            constraints=row.constraints,
+            wall_time_s=float(np.median(times[name])),
+            precision=row.precision,
+            recall=row.recall,
+            false_positives=row.false_positives,
+            windows=windows,
+            round_times_s=tuple(times[name]),
+        )
+        runs.append(run)
+        if on_run is not None:
+            on_run(run)
+    return runs
 
 
 def _fmt(value: float | None, digits: int = 2) -> str:
     return "–" if value is None else f"{value:.{digits}f}"
 
 
+def _spread(values: Sequence[float], digits: int = 2) -> str:
+    """The median of ``values``, with their range where there are several."""
+    if not values:
+        return "–"
+    median = _fmt(float(np.median(values)), digits)
+    return median if len(values) == 1 else f"{median} ({_fmt(min(values), digits)}–{_fmt(max(values), digits)})"
+
+
 def markdown_totals(report: ScaleReport) -> str:
-    """One line per world: the method's total time, each reference's, the ratios, P/R."""
+    """One line per world: the method's total time, each reference's, the ratios, P/R; over
+    several rounds, the medians with their ranges (a ratio's range is over the rounds' ratios,
+    each between two runs one after the other)."""
     refs = report.references
     head = f"| world | poses | constraints | {report.method} s | " + " | ".join(f"{r} s | {report.method}/{r}" for r in refs)
     head += f" | {report.method} P / R / FP |"
@@ -226,10 +291,9 @@ def markdown_totals(report: ScaleReport) -> str:
         cells = []
         for r in refs:
             other = runs.get(r)
-            ratio = mine.wall_time_s / other.wall_time_s if other and other.wall_time_s > 0 else None
-            cells.append(f"{_fmt(other.wall_time_s if other else None, 1)} | {_fmt(ratio)}")
+            cells.append(f"{_spread(other.round_times_s, 1) if other else '–'} | {_spread(report.ratios(case, r))}")
         lines.append(
-            f"| {case} | {mine.poses} | {mine.constraints} | {mine.wall_time_s:.1f} | " + " | ".join(cells)
+            f"| {case} | {mine.poses} | {mine.constraints} | {_spread(mine.round_times_s, 1)} | " + " | ".join(cells)
             + f" | {_fmt(mine.precision, 3)} / {_fmt(mine.recall, 3)} / {mine.false_positives} |"
         )
     return "\n".join(lines)

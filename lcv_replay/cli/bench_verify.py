@@ -206,7 +206,7 @@ def bench_suite_command(
     ),
 )
 def bench_scale_command(
-    poses: str = typer.Option("1000,2000,5000,10000", "--poses", help="World lengths in poses, comma-separated."),
+    poses: Optional[str] = typer.Option(None, "--poses", help="World lengths in poses, comma-separated (default 1000,2000,5000,10000; none with --log unless given)."),
     layout: str = typer.Option("grid", "--layout", help="World layout: grid or ring."),
     noise: str = typer.Option("gaussian", "--noise", help="Noise model: gaussian, heavy or misdeclared."),
     mode: str = typer.Option("random", "--outlier-mode", help="Outlier mode: random, local or group."),
@@ -217,6 +217,8 @@ def bench_scale_command(
     config: Optional[Path] = config_option("its [verification] section is used"),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the report as JSON."),
     workdir: Optional[Path] = typer.Option(None, "--workdir", help="Where the worlds and logs are built and reused (default ~/.cache/lcv-replay/suite)."),
+    logs: list[Path] = typer.Option([], "--log", help="Also time this lcv-replay MCAP log (repeatable), e.g. a Vertigo case 'bench suite' built in its work folder."),
+    repeat: int = typer.Option(1, "--repeat", min=1, help="Rounds per log: every method once a round, the order reversed every other round; prints the medians, their ranges and the rounds' ratios."),
     force: bool = force_option("the JSON report"),
 ) -> None:
     from lcv_replay.bench.scale import markdown_totals, markdown_windows, run_scale, scale_cases
@@ -225,12 +227,17 @@ def bench_scale_command(
     from lcv_replay.fileio import write_text_atomic
     from lcv_replay.verification.registry import make_verifier
 
+    if poses is None:
+        poses = "" if logs else "1000,2000,5000,10000"
     try:
         lengths = [int(p) for p in poses.split(",") if p.strip()]
     except ValueError:
         raise ConfigError(f"--poses {poses!r} is not a list of integers", fix="pass e.g. --poses 1000,2000,5000") from None
-    if not lengths:
+    if not lengths and not logs:
         raise ConfigError("--poses names no world length", fix="pass e.g. --poses 1000,2000,5000")
+    for log_path in logs:
+        if not log_path.is_file():
+            raise ConfigError(f"{log_path}: no such log", fix="pass an lcv-replay MCAP log with --log (e.g. from 'record g2o' or 'bench suite')")
     verification = _load_verification_config(config)
     for name in (method, *reference):
         make_verifier(name, verification)
@@ -238,9 +245,15 @@ def bench_scale_command(
     cases = scale_cases(lengths, layout=layout, noise=noise, mode=mode, outliers_per_1000=outliers_per_1000, seed=seed)
 
     def on_run(run) -> None:
-        typer.echo(f"{run.case} {run.method}: {run.wall_time_s:.1f} s, P {_num(run.precision)} R {_num(run.recall)}", err=True)
+        rounds = "" if len(run.round_times_s) < 2 else " (rounds " + ", ".join(f"{t:.1f}" for t in run.round_times_s) + ")"
+        typer.echo(f"{run.case} {run.method}: {run.wall_time_s:.1f} s{rounds}, P {_num(run.precision)} R {_num(run.recall)}", err=True)
 
-    report = run_scale(cases, method=method, references=reference, data_dir=Path("."), workdir=workdir or default_workdir(), config=verification, on_run=on_run)
+    report = run_scale(
+        cases, method=method, references=reference, data_dir=Path("."), workdir=workdir or default_workdir(), config=verification, on_run=on_run,
+        logs=logs, repeat=repeat,
+    )
+    if repeat > 1:
+        typer.echo(f"{repeat} rounds per log: times and ratios are medians, with their ranges in parentheses (a ratio's over the rounds, each between two runs one after the other)\n")
     typer.echo(markdown_totals(report) + "\n")
     typer.echo(markdown_windows(report))
     if json_out is not None:

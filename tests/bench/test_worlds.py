@@ -201,6 +201,49 @@ def test_the_back_end_reference_absorbs_each_windows_change_of_the_accepted_loop
     assert held[-1] == frozenset(accepted[-1])
 
 
+def test_bench_scale_times_a_given_log_in_rounds_that_alternate_the_order(tmp_path, monkeypatch):
+    """``bench scale --log L --repeat 3``: every method runs once a round, the order reversed every
+    other round; the time reported is the median of the rounds, each ratio is taken within a round,
+    and the table and the JSON give the medians with their ranges. A missing log is one error line."""
+    import json
+
+    from typer.testing import CliRunner
+
+    import lcv_replay.bench.verify as bench_verify
+    from lcv_replay.bench.suite import build_case_log
+    from lcv_replay.cli import app
+
+    log = build_case_log(world_cases(["grid"], [500], ["gaussian"], ["group"], [20], [4])[0], Path("/nonexistent"), tmp_path).path
+    order: list[str] = []
+    original = bench_verify.verify_inputs
+
+    def verify_inputs(inputs, method, *args, **kwargs):
+        order.append(method)
+        return original(inputs, method, *args, **kwargs)
+
+    monkeypatch.setattr(bench_verify, "verify_inputs", verify_inputs)
+    out = tmp_path / "scale.json"
+    result = CliRunner().invoke(app, ["bench", "scale", "--log", str(log), "--repeat", "3", "-m", "ilv+", "-r", "dcs", "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    assert order == ["ilv+", "dcs", "dcs", "ilv+", "ilv+", "dcs"]  # no generated world: only the log
+    report = json.loads(out.read_text())
+    assert report["repeat"] == 3
+    runs = {r["method"]: r for r in report["runs"]}
+    assert set(runs) == {"ilv+", "dcs"} and all(r["case"] == log.stem for r in runs.values())
+    mine, other = runs["ilv+"]["round_times_s"], runs["dcs"]["round_times_s"]
+    assert len(mine) == len(other) == 3
+    assert runs["ilv+"]["wall_time_s"] == sorted(mine)[1]
+    assert report["ratios"][log.stem]["dcs"] == pytest.approx([a / b for a, b in zip(mine, other)])
+    assert runs["ilv+"]["windows"] and runs["ilv+"]["precision"] == 1.0
+    ratios = report["ratios"][log.stem]["dcs"]
+    assert f"{sorted(ratios)[1]:.2f} ({min(ratios):.2f}–{max(ratios):.2f})" in result.output
+    assert "3 rounds per log" in result.output
+
+    missing = CliRunner().invoke(app, ["bench", "scale", "--log", str(tmp_path / "absent.mcap")])
+    assert missing.exit_code == 2 and "Traceback" not in missing.output
+    assert f"error: {tmp_path / 'absent.mcap'}: no such log" in missing.output
+
+
 @pytest.mark.parametrize("command", [["bench", "scale", "--poses", "500", "-r", "dcs"], ["bench", "suite", "--suite", "standard", "-m", "none"]])
 def test_a_work_folder_that_cannot_be_created_is_one_error_line(tmp_path, command):
     """``--workdir`` under a file: exit 2 with one ``error:`` line naming the folder, no traceback."""
