@@ -217,7 +217,7 @@ def bench_scale_command(
     config: Optional[Path] = config_option("its [verification] section is used"),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the report as JSON."),
     workdir: Optional[Path] = typer.Option(None, "--workdir", help="Where the worlds and logs are built and reused (default ~/.cache/lcv-replay/suite)."),
-    logs: list[Path] = typer.Option([], "--log", help="Also time this lcv-replay MCAP log (repeatable), e.g. a Vertigo case 'bench suite' built in its work folder."),
+    logs: list[Path] = typer.Option([], "--log", help="Also time this lcv-replay MCAP log (repeatable), e.g. a Vertigo case 'bench suite' built in its work folder, or any log 'record g2o' wrote."),
     repeat: int = typer.Option(1, "--repeat", min=1, help="Rounds per log: every method once a round, the order reversed every other round; prints the medians, their ranges and the rounds' ratios."),
     force: bool = force_option("the JSON report"),
 ) -> None:
