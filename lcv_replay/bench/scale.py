@@ -19,7 +19,7 @@ the order reversed every other round so that a machine that slows down or speeds
 weighs on both sides alike. A round's ratio is taken between runs that ran one after the other;
 the report gives the median over the rounds and their range, which is what a shared, noisy
 machine can honestly claim. Logs built elsewhere (``logs``, ``--log``: a Vertigo case that
-``bench suite`` built, a field log) are timed the same way.
+``bench suite`` built, any log ``record g2o`` wrote) are timed the same way.
 """
 
 from __future__ import annotations
@@ -85,11 +85,7 @@ class ScaleReport:
         is missing or a reference time is zero)."""
         runs = {r.method: r for r in self.runs if r.case == case}
         mine, other = runs.get(self.method), runs.get(reference)
-        if mine is None or other is None:
-            return ()
-        if len(mine.round_times_s) != len(other.round_times_s) or not mine.round_times_s:
-            return (mine.wall_time_s / other.wall_time_s,) if other.wall_time_s > 0 else ()
-        if min(other.round_times_s) <= 0:
+        if mine is None or other is None or not other.round_times_s or min(other.round_times_s) <= 0:
             return ()
         return tuple(a / b for a, b in zip(mine.round_times_s, other.round_times_s))
 
@@ -194,8 +190,8 @@ def run_scale(
     logs: Sequence[Path] = (),
     repeat: int = 1,
 ) -> ScaleReport:
-    """Build each case's log (cached), then run ``method`` and the ``references`` on it and on
-    each of ``logs``, in ``repeat`` rounds (the order reversed every other round); ``on_run`` is
+    """Build each case's log (cached), then run ``method`` and the ``references`` on those and
+    on each of ``logs``, in ``repeat`` rounds (the order reversed every other round); ``on_run`` is
     called after each method's last round."""
     import os
 
@@ -207,10 +203,9 @@ def run_scale(
         raise ValueError(f"repeat must be >= 1, got {repeat}")
     config = config or VerificationConfig()
     runs: list[ScaleRun] = []
-    sources: list[tuple[str, Callable[[], Path]]] = [(c.name, lambda c=c: build_case_log(c, data_dir, workdir).path) for c in cases]
-    sources += [(Path(p).stem, lambda p=p: Path(p)) for p in logs]
+    sources = [(c.name, build_case_log(c, data_dir, workdir).path) for c in cases] + [(Path(p).stem, Path(p)) for p in logs]
     for name, path in sources:
-        inputs = load_inputs(path(), require_candidates=False)
+        inputs = load_inputs(path, require_candidates=False)
         runs.extend(_time_rounds(name, inputs, (method, *references), method, config, repeat, on_run))
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
     return ScaleReport(method, tuple(references), tuple(runs), to_dict(config), load, repeat)

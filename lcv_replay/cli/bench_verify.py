@@ -237,7 +237,7 @@ def bench_scale_command(
         raise ConfigError("--poses names no world length", fix="pass e.g. --poses 1000,2000,5000")
     for log_path in logs:
         if not log_path.is_file():
-            raise ConfigError(f"{log_path}: no such log", fix="pass an lcv-replay MCAP log with --log (e.g. from 'record g2o' or 'bench suite')")
+            raise ConfigError(f"{log_path}: {'not a file' if log_path.exists() else 'no such log'}", fix="pass an lcv-replay MCAP log with --log (e.g. from 'record g2o' or 'bench suite')")
     verification = _load_verification_config(config)
     for name in (method, *reference):
         make_verifier(name, verification)
