@@ -409,7 +409,7 @@ def test_a_revisit_cut_short_by_the_window_end_does_not_lose_to_a_false_group_on
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("seed", "group_size"), [(9104, 10), (9207, 10), (9300, 10), (9420, 10), (9421, 10), (9308, 10), (9804, 20), (9302, 10), (9755, 5), (9852, 20), (9404, 10), (9805, 20), (10301, 10), (10407, 5)])
+@pytest.mark.parametrize(("seed", "group_size"), [(9104, 10), (9207, 10), (9300, 10), (9420, 10), (9421, 10), (9308, 10), (9804, 20), (9302, 10), (9755, 5), (9852, 20), (9404, 10), (9805, 20), (10301, 10), (10407, 5), (11008, 10)])
 def test_fresh_heavy_tailed_rings_where_a_verdict_went_wrong(tmp_path, seed, group_size):
     """Rings of 2,000 poses with heavy-tailed odometry and 400 grouped outliers (in groups of 10,
     or of 5 or 20), on seeds drawn fresh; before each fix (measured; GNC-TLS accepts no false loop on
@@ -481,8 +481,12 @@ def test_fresh_heavy_tailed_rings_where_a_verdict_went_wrong(tmp_path, seed, gro
       recall 0.982. Now the audit tests a loop's revisit with it: together they are 114.6 off
       (bound 73.1), leave, and are refused when verified again: none, 0.984, 1.02 m (the
       oracle's 1.02).
+    * 11008: a false group of 10 that the final map holds only on the count was flagged ambiguous
+      at the end, and another false group of 10 joined when the refused loops were tried once
+      more: 10 false loops, ATE 13.5 m. Now what joins then is judged by the same rule, once: it
+      holds only on the count too (by 2.1 gates) and is flagged: none, recall 0.981, ATE 2.59 m.
 
-    GNC-TLS's recall on these rings is 0.80 to 0.87 (measured on thirteen of the fourteen)."""
+    GNC-TLS's recall on these rings is 0.80 to 0.87 (measured on thirteen of the first fourteen)."""
     row, oracle = _world_rows(tmp_path, "ring", 2000, 400, seed, methods=("ilv+", "oracle"), group_size=group_size)
     assert row.false_positives == 0
     assert row.recall >= 0.95
