@@ -1654,7 +1654,7 @@ class ConsensusVerifier(WindowedVerifier):
             return notes
         on_count = [c for c, _ in sorted(self._on_count.items(), key=lambda kv: (-kv[1], kv[0])) if c in self.clusters]
         suspects = [members for members in (self._members({c}, Fate.ACCEPTED) for c in on_count) if len(members) >= self.plus.frontier_min_loops]
-        suspects += self._lone_revisits_on_count(accepted)
+        suspects += self._lone_revisits_on_count(accepted, holding=joined)
         if joined is not None:  # a second round: only what joined after the first is judged
             suspects = [m for m in suspects if np.isin(m, joined).any()]
         if not suspects:
@@ -1729,12 +1729,13 @@ class ConsensusVerifier(WindowedVerifier):
     #: its stretches.
     LONE_SPANS = 10
 
-    def _lone_revisits_on_count(self, accepted: np.ndarray) -> list[np.ndarray]:
+    def _lone_revisits_on_count(self, accepted: np.ndarray, *, holding: np.ndarray | None = None) -> list[np.ndarray]:
         """At the end of the log, the accepted revisits of ``frontier_min_loops`` to
         :data:`LONE_REVISIT_LOOPS` loops that no other accepted loop comes near (within
         :data:`LONE_SPANS` cluster spans of both their stretches) and that the final map holds
         only on the count: their leave-out statistic (:meth:`_left_out_d2`, one joint marginal
-        each) is above their cluster gate. Most strained first. :meth:`_rejudge_on_count` judges
+        each) is above their cluster gate; with ``holding``, only those that hold some of those
+        loops. Most strained first. :meth:`_rejudge_on_count` judges
         them as it judges the clusters accepted on the count: a cluster that joined in a window's
         joint try never met its own gate.
 
@@ -1773,6 +1774,8 @@ class ConsensusVerifier(WindowedVerifier):
                 continue  # other loops near it, or too small or too large
             if len(self._revisit_of(revisit, accepted)) != len(revisit):
                 continue  # it runs on beyond the box
+            if holding is not None and not np.isin(revisit, holding).any():
+                continue  # not one that the caller judges (no joint marginal queried for it)
             d2 = self._left_out_d2(x, revisit)
             gate = self.cluster_gate(len(revisit))
             if d2 is not None and d2 >= gate:
