@@ -30,7 +30,8 @@ def verdict(record: RunRecord) -> tuple[str, str]:
     text = (f"{counts['wrong']} wrong loop closure(s) accepted, {counts['missed']} true loop(s) missed; "
             f"precision {hp.num(s.get('precision'))}, recall {hp.num(s.get('recall'))}, ATE {hp.num(s.get('ate_rmse_m'), '.2f')} m.")
     if first is not None:
-        text += f" First wrong acceptance: constraint {first.constraint_id} ({first.query_frame}↔{first.match_frame}) at frame {first.first_accepted_frame}."
+        text += (f" First wrong acceptance: constraint {first.constraint_id} ({first.query_frame}↔{first.match_frame}) at frame "
+                 f"{first.first_accepted_frame}" + (f", {first.later}." if first.later else "."))
     return ("bad" if counts["wrong"] else "good"), text
 
 
@@ -51,7 +52,7 @@ def summary_rows(record: RunRecord) -> list[tuple[str, str, str]]:
         "both": f"the log's candidates plus our retrieval (N_r = {top_k} per query)",
     }.get(record.constraint_source, record.constraint_source)
     hyp = s.get("hypotheses")
-    return [
+    rows = [
         ("log", record.log, f"{record.frames} frames, {hp.num(s.get('log_duration_s'), '.1f')} s of log"),
         ("method", record.method, "the verifier (ilv: the paper; ilv+: the improved default)"),
         ("constraints", str(s.get("constraints")), f"loop candidates admitted, from {source_why}"),
@@ -62,7 +63,13 @@ def summary_rows(record: RunRecord) -> list[tuple[str, str, str]]:
         ("hypotheses", "n/a" if hyp is None else str(hyp), "hypotheses kept at the end (bounded by verification.max_hypotheses)"),
         ("windows", str(len(record.windows)), f"verifier steps, one every W = {window} frames and one at the end"),
         ("wall time", f"{hp.num(s.get('wall_time_s'), '.1f')} s", f"{hp.num(s.get('x_real_time'), '.1f')} × real time; set-up {hp.num(s.get('setup_time_s'), '.1f')} s"),
-    ] + ([("interrupted", "yes", "stopped early (Ctrl-C): figures as of the last completed window")] if s.get("interrupted") else [])
+    ]
+    flagged = record.flagged_words()
+    if flagged:  # the verdict that says it could not decide, beside what was accepted
+        rows.insert(4, ("ambiguous", str(record.counts()["ambiguous"]), flagged))
+    if s.get("interrupted"):
+        rows.append(("interrupted", "yes", "stopped early (Ctrl-C): figures as of the last completed window"))
+    return rows
 
 
 def _loop_rows(loops: Sequence[LoopRecord]) -> list[tuple]:

@@ -95,6 +95,17 @@ class LoopRecord:
         """Labelled true, but not accepted."""
         return self.state != "accepted" and self.truth is True
 
+    @property
+    def later(self) -> str:
+        """What became of it after it was accepted, in words (``""`` if it ended accepted or was
+        never accepted): e.g. ``"flagged ambiguous from frame 1999"``."""
+        if self.first_accepted_frame is None or self.state == "accepted":
+            return ""
+        if self.state == "pending":
+            return "undecided at the end"
+        what = "flagged ambiguous" if self.state == "ambiguous" else "refused"
+        return f"{what} from frame {self.dropped_frame}" if self.dropped_frame is not None else f"{what} by the end"
+
 
 @dataclass(frozen=True)
 class WindowRecord:
@@ -234,6 +245,19 @@ class RunRecord:
         accepted (ties: the lower id); ``None`` without truth or without such a constraint."""
         wrong = [loop for loop in self.loops if loop.truth is False and loop.first_accepted_frame is not None]
         return min(wrong, key=lambda loop: (loop.first_accepted_frame, loop.constraint_id), default=None)
+
+    def flagged_words(self) -> str:
+        """What the loops the verifier flagged ambiguous are, in words (``""`` if none), e.g.
+        ``"flagged rather than accepted: ... (10 false, 0 true by the truth)"``; their number is
+        ``counts()["ambiguous"]``."""
+        flagged = [loop for loop in self.loops if loop.state == "ambiguous"]
+        if not flagged:
+            return ""
+        text = "flagged rather than accepted: the verifier could not tell them from true loops"
+        if self.has_truth:
+            false = sum(loop.truth is False for loop in flagged)
+            text += f" ({false} false, {sum(loop.truth is True for loop in flagged)} true by the truth)"
+        return text
 
     def first_missed_loop(self) -> LoopRecord | None:
         """The true constraint that was first left out at a window end after it had arrived

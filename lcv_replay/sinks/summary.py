@@ -65,6 +65,8 @@ def format_summary(summary: RunSummary, record: "RunRecord | None" = None) -> st
         f"  constraints       {summary.constraints}: {_constraint_words(summary, queries)}",
         f"  accepted loops    {summary.accepted}: the constraints the final rank-1 hypothesis holds",
     ]
+    if record is not None and record.flagged_words():
+        lines.append(f"  ambiguous         {record.counts()['ambiguous']} {record.flagged_words()}")
     if summary.true_positives is not None:
         if summary.precision is None:
             lines.append(f"  precision         n/a: nothing accepted; truth: {_truth_words(summary)}")
@@ -102,8 +104,9 @@ def format_summary(summary: RunSummary, record: "RunRecord | None" = None) -> st
         first = record.first_wrong_acceptance()
         if first is not None:
             where = f"lcv-replay open {summary.rrd} --frame {first.first_accepted_frame}" if summary.rrd else "(no recording saved)"
+            later = f" ({first.later})" if first.later else ""
             lines.append(f"  first wrong loop  frame {first.first_accepted_frame}: constraint {first.constraint_id} "
-                         f"({first.query_frame}↔{first.match_frame}) accepted although false; open there: {where}")
+                         f"({first.query_frame}↔{first.match_frame}) accepted although false{later}; open there: {where}")
     return "\n".join(lines)
 
 

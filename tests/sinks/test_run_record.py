@@ -55,6 +55,37 @@ def test_a_constraint_flagged_ambiguous_is_neither_accepted_nor_rejected(tmp_pat
     assert recorder.record.counts()["ambiguous"] == 1
 
 
+def test_the_summary_and_the_report_say_what_was_flagged_and_what_became_of_a_wrong_loop(tmp_path):
+    from lcv_replay.report.html import summary_rows
+    from lcv_replay.sinks.summary import format_summary
+
+    plain = RunRecorder()
+    script(plain, tmp_path / "plain")
+    assert plain.record.flagged_words() == ""  # nothing flagged: no line, no row
+    assert "ambiguous" not in [figure for figure, _, _ in summary_rows(plain.record)]
+
+    recorder = _FlagLast()
+    script(recorder, tmp_path / "flagged")
+    record = recorder.record
+    wrong = record.first_wrong_acceptance()
+    assert (wrong.constraint_id, wrong.first_accepted_frame, wrong.later) == (1, 19, "flagged ambiguous from frame 29")
+    assert record.loops[0].later == ""  # accepted to the end
+    words = "flagged rather than accepted: the verifier could not tell them from true loops (1 false, 0 true by the truth)"
+    assert record.flagged_words() == words
+    assert ("ambiguous", "1", words) in summary_rows(record)
+    text = format_summary(_summary(), record)
+    assert f"  ambiguous         1 {words}" in text
+    assert "constraint 1 (15↔8) accepted although false (flagged ambiguous from frame 29); open there" in text
+
+
+def _summary():
+    from lcv_replay.sinks.base import RunSummary
+
+    return RunSummary(frames=30, wall_time_s=0.3, log_duration_s=2.9, method="ilv", constraints=3, accepted=2,
+                      true_positives=2, false_positives=0, false_negatives=0, precision=1.0, recall=1.0, ate_rmse_m=0.5,
+                      hypotheses=3, constraint_source="images", truth_source="labels", rrd="run.rrd", config={})
+
+
 def test_a_consistency_matrix_with_fewer_rows_than_the_ranking_shows_the_rows_it_has():
     """ilv+ on measured loops gives one consistency row (its working hypothesis) and ranks its
     contests below it: the snapshot shows that row rather than nothing (an empty panel)."""

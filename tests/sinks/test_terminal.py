@@ -53,6 +53,7 @@ def test_every_summary_figure_is_explained(tmp_path):
     assert "constraints       3: our retrieval: 1 query frames × up to N_r = 10 matches" in text
     assert "true when the two frames lie within T_p = 10 m in the ground truth" in text
     assert "hypotheses        3 kept at the end (at most 200)" in text
-    assert "first wrong loop  frame 19: constraint 1 (15↔8) accepted although false; open there: lcv-replay open run.rrd --frame 19" in text
+    assert ("first wrong loop  frame 19: constraint 1 (15↔8) accepted although false (refused from frame 29); "
+            "open there: lcv-replay open run.rrd --frame 19") in text  # and what became of it
     assert all(len(line) > 20 for line in lines[1:])  # each figure comes with its meaning
     assert text.count("rerun run.rrd") == 1
