@@ -65,8 +65,9 @@ def format_summary(summary: RunSummary, record: "RunRecord | None" = None) -> st
         f"  constraints       {summary.constraints}: {_constraint_words(summary, queries)}",
         f"  accepted loops    {summary.accepted}: the constraints the final rank-1 hypothesis holds",
     ]
-    if record is not None and record.flagged_words():
-        lines.append(f"  ambiguous         {record.counts()['ambiguous']} {record.flagged_words()}")
+    flagged = "" if record is None else record.flagged_words()
+    if flagged:
+        lines.append(f"  ambiguous         {record.counts()['ambiguous']} {flagged}")
     if summary.true_positives is not None:
         if summary.precision is None:
             lines.append(f"  precision         n/a: nothing accepted; truth: {_truth_words(summary)}")

@@ -1717,11 +1717,12 @@ class ConsensusVerifier(WindowedVerifier):
             log.warning("ilv+: the map without the refused clusters failed (%s); rebuilt", exc.message)
             self._rebuild()
         span = self.plus.cluster_span_frames
+        held = [(int(self._q[members].min()) - span, int(self._q[members].max()) + span) for members in refused]  # their stretches
         for c in self.clusters.values():
             if c.id in gone_clusters or not np.any(self._fate[c.members] == Fate.REJECTED):
                 continue
             q = self._q[c.members]
-            rival = any(q.min() <= self._q[members].max() + span and self._q[members].min() - span <= q.max() for members in refused)
+            rival = any(q.min() <= last and first <= q.max() for first, last in held)
             if c.opponents & gone_clusters or rival:  # refused against them, or in the map they bent where they held its stretch
                 self._near_misses.setdefault(c.id, 0.0)
         before = self._fate == Fate.ACCEPTED
