@@ -38,7 +38,8 @@ What ``ilv+`` does now, at every window end (and in :meth:`ConsensusVerifier.res
    cost. A cluster is refused without a solve where a bound proves it cannot pass (its
    innovation is at least any member's, bounded from below by the marginals) or where one
    Gauss-Newton step is already far off. Members of a refused cluster that do not fit go back
-   to the pool.
+   to the pool; where a contest of the window then changes the map, they are verified in it at
+   once.
 4. **Contests (the multi-hypothesis step).** A refused cluster names its opponents: the accepted
    clusters it strains. The alternative hypothesis (an opponent out, the challenger and every
    earlier loser to it in; if that loses, the challenger alone) is solved, and the two are ranked
@@ -68,10 +69,11 @@ The trajectory reported at the end is solved under the log's declared noise, as 
 A small cluster beyond every accepted loop, the only hold on the free end of the trajectory where
 any loop fits, waits one window for support; at the end of the log it is decided, the refused
 clusters whose opponents are still accepted (and hold no more loops) are contested once more
-(solved in full, or searched for a side among the suspects). Then a second hypothesis is built
-afresh on the odometry from the same clusters, largest first (twice: each trial judged on one
-Gauss-Newton step, and the same with the accepted runs solved in full; the lower truncated cost
-of the two competes), and
+(solved in full, or searched for a side among the suspects; with ``max_contests_per_window``
+contests of their own, whatever the last window's new clusters spent). Then a second hypothesis
+is built afresh on the odometry from the same clusters, largest first (twice: each trial judged
+on one Gauss-Newton step, and the same with the accepted runs solved in full; the lower
+truncated cost of the two competes), and
 replaces the working one where its truncated cost is lower
 (:meth:`ConsensusVerifier._largest_first`): in the order the robot
 drove, a false group that joined early bends the map the later revisits are judged in. Where it
@@ -354,9 +356,20 @@ class ConsensusVerifier(WindowedVerifier):
         budget = self.plus.max_contests_per_window
         budget = self._contest_losers(losers, contests, budget)
         budget = self._retry_ambiguous(contests, budget)
+        if not final and any(c.outcome.startswith("won") for c in contests) and np.any(self._fate == Fate.PENDING):
+            # a contest changed the map: the loops sent back to the pool in this window (members of
+            # a refused cluster that did not fit the map the contest has since replaced) are
+            # verified in the new one now, not at the next window, by when the stretch they would
+            # hold may have taken false groups that nothing contradicted (ring s11803: a true
+            # revisit of 373 such loops waited, and two false groups of 10 joined at its free end)
+            losers = self._verify(self._form_clusters(self._screen()))
+            budget = self._contest_losers(losers, contests, budget)
         if final:  # every standing conflict once more, solved in full (see _contest)
+            # with a budget of their own: the last window's new losers may have spent the window's
+            # (fresh ring s12008: 20 contests of clusters of 9, 3 and 1 loops, and the true revisit
+            # of 200 loops refused against a false group of 10 was never contested again)
             standing, searched = self._standing_losers(exclude={c.id for c, opponents in losers if opponents})
-            budget = self._contest_losers(standing, contests, budget, searched=searched)
+            budget = self._contest_losers(standing, contests, max(budget, self.plus.max_contests_per_window), searched=searched)
         timings["contest"] = time.perf_counter() - t
 
         t = time.perf_counter()
