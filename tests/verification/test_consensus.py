@@ -494,9 +494,10 @@ def test_fresh_heavy_tailed_rings_where_a_verdict_went_wrong(tmp_path, seed, gro
       the batch solve and flagged, and the refused clusters of the stretch it held are tried
       again: none, 0.980, 0.76 m (the oracle's 0.74; GNC-TLS none, 0.834, 0.78 m).
     * 11803 (drawn at the fifteenth stop): at the third window a true revisit of 439 loops
-      (frames 617-1499) failed its trial in the map a false group of 10 had bent at the second; the 66 of its loops that fitted won a contest against the group, but the other
-      373 had gone back to the pool until the next window, and meanwhile two false groups of 10
-      joined where they would have held the trajectory. 20 false loops, recall 0.652, ATE 2.62 m.
+      (frames 617-1499) failed its trial in the map a false group of 10 had bent at the second;
+      the 66 of its loops that fitted won a contest against the group, but the other 373 had gone
+      back to the pool until the next window, and meanwhile two false groups of 10 joined where
+      they would have held the trajectory. 20 false loops, recall 0.652, ATE 2.62 m.
       Now the loops sent back are verified in the map a contest of their window changed: none,
       0.991, 1.02 m (the oracle's 1.00; GNC-TLS none, 0.844).
     * 12008 (drawn at the sixteenth stop): a true revisit of 200 loops (frames 1589-1998) lost
