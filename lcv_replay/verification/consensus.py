@@ -1649,10 +1649,11 @@ class ConsensusVerifier(WindowedVerifier):
         0.961, ATE 0.25 m (1.08 times the oracle's; GNC-TLS accepts none).
 
         Why at the end, and the rivals together: the same rivals, named at the window as the
-        opponents of the hold before them, were contested one by one and the map took another
-        path. On s9804 (groups of 20) a false group of 20 then won its contest against a true
-        revisit of 10 (0 -> 20 false loops). Each rival alone holds fewer loops than the hold and
-        loses on the count; together they show what the free end would have been."""
+        opponents of the hold before them, were contested one by one, and the map took another
+        path: on s9804 (groups of 20) the contests at the end of the log ran with other members,
+        a challenger of 102 true loops replaced one of 112, and 20 false loops joined (none
+        before). Each rival alone holds fewer loops than the hold and loses on the count; together
+        they show what the free end would have been, and the window's path is left as it was."""
         notes: list[str] = []
         gate = self.gate_chi2
         base = None
