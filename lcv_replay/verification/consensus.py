@@ -935,7 +935,7 @@ class ConsensusVerifier(WindowedVerifier):
                 x = self.graph.estimate()
                 worst = self._worst(group, x)
                 chi2_after = self._residual_chi2(x, accepted)
-                broken = bool(np.any((chi2_after >= self.gate_chi2) & (chi2_after - chi2_accepted > self.gate_chi2)))
+                broken = self._breaks(chi2_accepted, chi2_after)
                 if not worst and not broken and self._chi2_total() - before < gate_k:
                     self._fate[members] = Fate.ACCEPTED
                     return aside
@@ -955,6 +955,11 @@ class ConsensusVerifier(WindowedVerifier):
             log.warning("ilv+: joint verification failed (%s); verifying one by one", exc.message)
             self._rebuild()
         return group + aside
+
+    def _breaks(self, chi2_before: np.ndarray, chi2_after: np.ndarray) -> bool:
+        """Whether a change breaks an accepted loop: its chi-square, ``chi2_before`` and
+        ``chi2_after`` the change, ends above the gate and has risen by more than a gate."""
+        return bool(np.any((chi2_after >= self.gate_chi2) & (chi2_after - chi2_before > self.gate_chi2)))
 
     def _join(self, members: np.ndarray) -> None:
         """Add accepted ``members`` to the graph; if GTSAM fails, they are refused instead and the
@@ -2404,8 +2409,7 @@ class ConsensusVerifier(WindowedVerifier):
         except OptimisationFailed as exc:
             log.warning("ilv+: the free end under heavy-tailed odometry failed (%s)", exc.message)
             return
-        before, after = self._residual_chi2(self.graph.estimate(), held), self._residual_chi2(solution.poses, held)
-        broken = bool(np.any((after >= gate) & (after - before > gate)))
+        broken = self._breaks(self._residual_chi2(self.graph.estimate(), held), self._residual_chi2(solution.poses, held))
         log.debug("ilv+: free end past %d: %d loops of %d places agree across a slip (broken: %s, worst %.1f)", frontier, len(claim), len(best[1]), broken,
                   float(self._residual_chi2(solution.poses, claim).max()))
         if broken or self._residual_chi2(solution.poses, claim).max() >= gate:
@@ -2452,8 +2456,7 @@ class ConsensusVerifier(WindowedVerifier):
             return None
         gate, gate_k = self.gate_chi2, self.cluster_gate(len(members))
         residual = self._residual_chi2(solution.poses, members)
-        before, after = self._residual_chi2(base.poses, accepted), self._residual_chi2(solution.poses, accepted)
-        broken = bool(np.any((after >= gate) & (after - before > gate)))
+        broken = self._breaks(self._residual_chi2(base.poses, accepted), self._residual_chi2(solution.poses, accepted))
         ok = residual.max() < gate and residual.sum() < gate_k and not broken and solution.chi2 - base.chi2 < gate_k
         return solution if ok else None
 
