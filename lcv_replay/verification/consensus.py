@@ -760,6 +760,8 @@ class ConsensusVerifier(WindowedVerifier):
         remaining.sort(key=lambda c: (-len(self._pending_members(c)), int(self._q[self._pending_members(c)].min()) if len(self._pending_members(c)) else 0, c.id))
         losers = []
         holds: list[tuple[int, int, int]] = []  # (cluster id, frontier before it, its first query frame): free-end holds (_contest_free_end_holds)
+        held = self._ids(Fate.ACCEPTED)
+        reached = int(self._q[held].max()) if len(held) else -1  # the newest accepted loop's query frame (only this loop accepts from here)
         for cluster in remaining:
             members = self._pending_members(cluster)
             if self._implausible_now(members):
@@ -769,8 +771,6 @@ class ConsensusVerifier(WindowedVerifier):
                     if first > before and last >= start - self.plus.cluster_span_frames:
                         self._free_end_holds[hold].add(cluster.id)
                 continue
-            held = self._ids(Fate.ACCEPTED)
-            before = int(self._q[held].max()) if len(held) else -1
             ok, opponents = self._trial(members)
             fit = self.last_fit
             if not ok and fit is not None and 0 < fit.sum() < len(members):
@@ -781,9 +781,10 @@ class ConsensusVerifier(WindowedVerifier):
                 ok, opponents = self._trial(members)
             if ok:
                 self._fate[members] = Fate.ACCEPTED
-                if int(self._q[members].min()) > before:  # it took the free end, by the order of the trials
-                    holds.append((cluster.id, before, int(self._q[members].min())))
+                if int(self._q[members].min()) > reached:  # it took the free end, by the order of the trials
+                    holds.append((cluster.id, reached, int(self._q[members].min())))
                     self._free_end_holds.setdefault(cluster.id, set())
+                reached = max(reached, int(self._q[members].max()))
             else:
                 self._fate[members] = Fate.REJECTED
                 cluster.opponents |= opponents
@@ -1668,7 +1669,7 @@ class ConsensusVerifier(WindowedVerifier):
         base = None
         for hold, rivals in sorted(self._free_end_holds.items()):
             members = self._members({hold}, Fate.ACCEPTED)
-            challengers = self._members(rivals, Fate.REJECTED) if rivals else np.zeros(0, dtype=np.int64)
+            challengers = self._members(rivals, Fate.REJECTED)
             if len(members) == 0 or len(challengers) <= len(members):
                 continue
             accepted = self._ids(Fate.ACCEPTED)

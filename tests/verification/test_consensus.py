@@ -371,15 +371,21 @@ def test_true_loops_refused_under_odometry_declared_too_tight_are_tried_under_th
     assert row.recall >= 0.992
 
 
-def _world_rows(tmp_path, layout: str, poses: int, outliers: int, seed: int, methods=("ilv+",), group_size: int = 10):
-    """Rows of ``methods`` on a generated world with heavy-tailed odometry and grouped outliers."""
+def _world_runs(tmp_path, layout: str, poses: int, outliers: int, seed: int, methods=("ilv+",), group_size: int = 10):
+    """Runs (``bench verify``'s) of ``methods`` on a generated world with heavy-tailed odometry and
+    grouped outliers."""
     from lcv_replay.bench.suite import build_case_log
     from lcv_replay.bench.suites import world_cases
     from lcv_replay.bench.verify import load_inputs, verify_inputs
 
     case = world_cases([layout], [poses], ["heavy"], ["group"], [outliers], [seed], group_size=group_size)[0]
     inputs = load_inputs(build_case_log(case, Path("/nonexistent"), tmp_path).path)
-    return [verify_inputs(inputs, method).row for method in methods]
+    return [verify_inputs(inputs, method) for method in methods]
+
+
+def _world_rows(tmp_path, layout: str, poses: int, outliers: int, seed: int, methods=("ilv+",), group_size: int = 10):
+    """Rows of ``methods`` on a generated world with heavy-tailed odometry and grouped outliers."""
+    return [run.row for run in _world_runs(tmp_path, layout, poses, outliers, seed, methods, group_size)]
 
 
 @pytest.mark.slow
@@ -547,13 +553,8 @@ def test_a_false_group_that_took_the_free_end_loses_to_the_clusters_refused_in_t
     times the oracle's). Now, at the end of the log, such a hold is contested against those
     clusters together: no false loop, recall 0.961, ATE 0.25 m (1.08 times the oracle's; GNC-TLS
     none)."""
-    from lcv_replay.bench.suite import build_case_log
-    from lcv_replay.bench.suites import world_cases
-    from lcv_replay.bench.verify import load_inputs, verify_inputs
-
-    case = world_cases(["grid"], [2000], ["heavy"], ["group"], [400], [11911])[0]
-    inputs = load_inputs(build_case_log(case, Path("/nonexistent"), tmp_path).path)
-    run, oracle = verify_inputs(inputs, "ilv+"), verify_inputs(inputs, "oracle").row
+    run, oracle = _world_runs(tmp_path, "grid", 2000, 400, 11911, methods=("ilv+", "oracle"))
+    oracle = oracle.row
     assert run.row.false_positives == 0
     assert run.row.recall >= 0.95
     assert run.row.ate_rmse_m <= 1.1 * oracle.ate_rmse_m
@@ -570,13 +571,8 @@ def test_revisits_of_several_places_past_the_last_accepted_loop_join_across_an_o
     a refused cluster past the last accepted loop that revisits of other places agree with under
     heavy-tailed odometry joins with them: no false loop, recall 0.943, ATE 0.76 m (1.04 times
     the oracle's)."""
-    from lcv_replay.bench.suite import build_case_log
-    from lcv_replay.bench.suites import world_cases
-    from lcv_replay.bench.verify import load_inputs, verify_inputs
-
-    case = world_cases(["ring"], [2000], ["heavy"], ["group"], [400], [12219])[0]
-    inputs = load_inputs(build_case_log(case, Path("/nonexistent"), tmp_path).path)
-    run, oracle = verify_inputs(inputs, "ilv+"), verify_inputs(inputs, "oracle").row
+    run, oracle = _world_runs(tmp_path, "ring", 2000, 400, 12219, methods=("ilv+", "oracle"))
+    oracle = oracle.row
     assert run.row.false_positives == 0
     assert run.row.recall >= 0.94
     assert run.row.ate_rmse_m <= 1.1 * oracle.ate_rmse_m
