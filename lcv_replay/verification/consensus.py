@@ -734,8 +734,7 @@ class ConsensusVerifier(WindowedVerifier):
             if not final and len(members) < self.plus.frontier_min_loops and int(self._q[members].min()) > frontier:
                 continue  # stays PENDING: verified at the next window
             frontier = max(frontier, int(self._q[members].max()))
-            chi2 = self._residual_chi2(self.graph.estimate(), members)
-            if chi2.max() < self.gate_chi2 and chi2.sum() < self.cluster_gate(len(members)):
+            if self._fits_as_is(self._residual_chi2(self.graph.estimate(), members)):
                 self._fate[members] = Fate.ACCEPTED  # the innovation is at most the residual at the optimum
                 deferred.extend(members.tolist())
             else:
@@ -791,6 +790,12 @@ class ConsensusVerifier(WindowedVerifier):
                 losers.append((cluster, opponents))
         return losers
 
+    def _fits_as_is(self, chi2: np.ndarray) -> bool:
+        """Whether a cluster whose members' residuals at the current solution are ``chi2`` passes
+        without a solve: every one below the gate, their sum below the cluster gate (adding the
+        cluster raises the chi-square at the optimum by at most that sum)."""
+        return bool(chi2.max() < self.gate_chi2 and chi2.sum() < self.cluster_gate(len(chi2)))
+
     def _shortcut(self, clusters: list[Cluster]) -> list[Cluster]:
         """Accept the clusters whose residuals pass at the current solution (their innovation is at
         most those residuals); returns the others."""
@@ -798,8 +803,7 @@ class ConsensusVerifier(WindowedVerifier):
         passing, others = [], []
         for cluster in clusters:
             members = self._pending_members(cluster)
-            chi2 = self._residual_chi2(x, members)
-            (passing if chi2.max() < self.gate_chi2 and chi2.sum() < self.cluster_gate(len(members)) else others).append(members)
+            (passing if self._fits_as_is(self._residual_chi2(x, members)) else others).append(members)
         if passing:
             members = np.concatenate(passing)
             self._fate[members] = Fate.ACCEPTED
@@ -2183,8 +2187,7 @@ class ConsensusVerifier(WindowedVerifier):
             members = self.clusters[c].members[self._fate[self.clusters[c].members] == Fate.REJECTED]
             chi2 = self._residual_chi2(x, members)
             near = len(members) >= self.plus.frontier_min_loops and np.median(chi2) < self.NEAR_MISS * self.gate_chi2
-            fits = chi2.max() < self.gate_chi2 and chi2.sum() < self.cluster_gate(len(members))  # as the window's shortcut
-            if near or fits:
+            if near or self._fits_as_is(chi2):
                 retry[c] = self.clusters[c]
         for cluster in sorted(retry.values(), key=lambda c: (-c.size, c.id)):
             self._try_again(cluster.members[self._fate[cluster.members] == Fate.REJECTED])
@@ -2420,9 +2423,9 @@ class ConsensusVerifier(WindowedVerifier):
             log.warning("ilv+: the free end under heavy-tailed odometry failed (%s)", exc.message)
             return
         broken = self._breaks(self._residual_chi2(self.graph.estimate(), held), self._residual_chi2(solution.poses, held))
-        log.debug("ilv+: free end past %d: %d loops of %d places agree across a slip (broken: %s, worst %.1f)", frontier, len(claim), len(best[1]), broken,
-                  float(self._residual_chi2(solution.poses, claim).max()))
-        if broken or self._residual_chi2(solution.poses, claim).max() >= gate:
+        worst = float(self._residual_chi2(solution.poses, claim).max())
+        log.debug("ilv+: free end past %d: %d loops of %d places agree across a slip (broken: %s, worst %.1f)", frontier, len(claim), len(best[1]), broken, worst)
+        if broken or worst >= gate:
             return
         self._fate[claim] = Fate.ACCEPTED
         self._join(claim)
