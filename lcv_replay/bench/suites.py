@@ -375,11 +375,20 @@ def load_suite_file(path: str | Path, *, _seen: tuple[Path, ...] = ()) -> Suite:
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"not valid TOML: {exc}", path=path, fix="fix the syntax") from None
     _refuse_unknown(data, _TOP_KEYS, "", path)
+    try:
+        return _suite_from_tables(data, path, (*_seen, resolved))
+    except ConfigError as exc:  # a world, mode or included suite refused without naming this file
+        if exc.path is not None:
+            raise
+        raise ConfigError(exc.message, path=path, fix=exc.fix) from None
 
+
+def _suite_from_tables(data: dict, path: Path, seen: tuple[Path, ...]) -> Suite:
+    """The :class:`Suite` of a parsed suite file ``path`` (:func:`load_suite_file`)."""
     cases: list[SuiteCase] = []
     methods: tuple[str, ...] = _list_of(data, "methods", str, path, ())
     for name in _list_of(data, "include", str, path, ()):
-        included = get_suite(name, base_dir=path.parent, _seen=(*_seen, resolved))
+        included = get_suite(name, base_dir=path.parent, _seen=seen)
         cases.extend(included.cases)
         methods = methods or included.methods
     for table in _typed(data.get("robustslam_kitti", []), list, "robustslam_kitti", path):

@@ -114,8 +114,19 @@ def test_suites_of_generated_worlds_and_fresh_seeds(tmp_path):
     suite = load_suite_file(path)
     assert [c.name for c in suite.cases] == ["ring-1500-misdeclared-local-50-s4", "ring-1500-misdeclared-group-50-s4"]
     path.write_text('[[world]]\nlayouts = ["maze"]\n')
-    with pytest.raises(ConfigError, match="layout"):
+    with pytest.raises(ConfigError, match="layout") as refused:
         load_suite_file(path)
+    assert refused.value.path == path  # the error line names the file
+    for bad in ('noise = ["bogus"]', 'modes = ["bogus"]', "poses = [5]"):
+        path.write_text(f"[[world]]\n{bad}\n")
+        with pytest.raises(ConfigError) as refused:
+            load_suite_file(path)
+        assert str(refused.value).startswith(f"{path}: ")
+    including = tmp_path / "top.toml"
+    including.write_text('include = ["w.toml"]\n')
+    with pytest.raises(ConfigError) as refused:
+        load_suite_file(including)
+    assert refused.value.path == path  # the file the bad table is in, not the one including it
     with pytest.raises(ConfigError, match="exactly one"):
         SuiteCase("both", graph="x.g2o", world=WorldSpec())
 
