@@ -287,6 +287,11 @@ class Cycles:
     def __len__(self) -> int:
         return len(self.error)
 
+    @property
+    def first_loop_transport(self) -> np.ndarray:
+        """``(K, 3, 3)`` ``Ad(B⁻¹)``, which carries the first loop's noise into the error."""
+        return self._ad_r1
+
     def covariance(self, loops: tuple[np.ndarray, np.ndarray] | None, odometry_prefix: np.ndarray | None) -> np.ndarray:
         """``(K, 3, 3)`` covariance of the errors for loop covariances ``(R1, R2)`` (each
         ``(K, 3, 3)``, or ``None`` for exact loops) and the odometry step covariance whose prefix

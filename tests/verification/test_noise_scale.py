@@ -9,7 +9,7 @@ import pytest
 
 from lcv_replay.errors import VerificationError
 from lcv_replay.records import LoopCandidate, Pose2D
-from lcv_replay.verification.noise_scale import MAX_DOF, calibrated_gate, fit_noise, fit_odometry_level
+from lcv_replay.verification.noise_scale import MAX_DOF, calibrated_gate, fit_loop_shape, fit_noise, fit_odometry_level, shaped_covariance
 from lcv_replay import se2
 from lcv_replay.verification.registry import make_verifier
 from tests.shared_data import shared_path
@@ -80,6 +80,49 @@ def test_a_level_fit_needs_three_cycles():
     error, loops, odometry = _cycles(1.0, 2, 0)
     with pytest.raises(VerificationError, match="at least 3 cycles"):
         fit_odometry_level(error, loops, odometry, confidence=0.9999)
+
+
+def _shape_cycles(shape, *, count=1500, seed=0):
+    """Cycle errors of two loops each, declared ``diag(0.04, 0.01, 0.002)``, whose true noise is
+    shaped by ``shape`` (and 0.5 times the level), plus a little odometry noise."""
+    rng = np.random.default_rng(seed)
+    declared = np.broadcast_to(np.diag([0.04, 0.01, 0.002]), (count, 3, 3)).copy()
+    transport = se2.adjoint_inverse(np.column_stack([rng.normal(0.0, 2.0, (count, 2)), rng.uniform(-np.pi, np.pi, count)]))
+    odometry = np.broadcast_to(np.diag([1e-3, 1e-3, 1e-4]), (count, 3, 3)).copy()
+    true = 0.5 * shaped_covariance(declared, np.asarray(shape))
+    cov = transport @ true @ np.swapaxes(transport, -1, -2) + true + odometry
+    error = np.einsum("kij,kj->ki", np.linalg.cholesky(cov), rng.normal(size=(count, 3)))
+    return error, declared, transport, declared, odometry
+
+
+def test_a_loop_shape_fit_finds_the_axes_the_declared_noise_gets_wrong():
+    fit = fit_loop_shape(*_shape_cycles((8.0, 0.25, 0.5)))
+    truth = np.array([8.0, 0.25, 0.5]) / np.cbrt(8.0 * 0.25 * 0.5)
+    assert fit.shape == pytest.approx(truth, rel=0.2)
+    assert np.prod(fit.shape) == pytest.approx(1.0)
+    assert fit.significant(0.9999)
+    assert fit.cycles == 1500
+    assert fit.tail.dof >= 20  # Gaussian errors: chi-square-like under the fitted shape
+
+
+def test_a_loop_shape_fit_to_heavy_tailed_cycles_says_they_stay_heavy_tailed():
+    error, first, transport, second, odometry = _shape_cycles((8.0, 0.25, 0.5), seed=2)
+    error = error * np.sqrt(3.0 / np.random.default_rng(3).chisquare(3.0, size=(len(error), 1)))  # Student-t, 3 dof
+    fit = fit_loop_shape(error, first, transport, second, odometry)
+    assert fit.significant(0.9999)
+    assert fit.tail.dof < 20
+
+
+def test_a_loop_shape_fit_leaves_a_right_shape_alone():
+    fit = fit_loop_shape(*_shape_cycles((1.0, 1.0, 1.0), seed=1))
+    assert fit.shape == pytest.approx(np.ones(3), rel=0.15)
+    assert not fit.significant(0.9999)
+
+
+def test_a_loop_shape_fit_needs_four_cycles():
+    error, first, transport, second, odometry = _shape_cycles((1.0, 1.0, 1.0), count=3)
+    with pytest.raises(VerificationError, match="at least 4 cycles"):
+        fit_loop_shape(error, first, transport, second, odometry)
 
 
 def test_gaussian_quantile_is_chi_square():
