@@ -316,18 +316,18 @@ def fit_loop_shape(
     components = np.stack(parts)  # (7, P, 3, 3)
     lo, hi = (float(v) for v in np.log(bounds))
 
-    def cost(theta: np.ndarray) -> float:  # theta: log factors of the three axes, then the odometry's
+    def weights(theta: np.ndarray) -> np.ndarray:  # theta: log factors of the three axes, then the odometry's
         root = np.exp(0.5 * theta[:3])
-        weights = [root[i] * root[j] for i, j in pairs] + [np.exp(theta[3])]
-        return float(student_t_costs(error, components, np.log10(np.asarray(weights))[None, :], nu=nu)[0])
+        return np.array([root[i] * root[j] for i, j in pairs] + [np.exp(theta[3])])
+
+    def cost(theta: np.ndarray) -> float:
+        return float(student_t_costs(error, components, np.log10(weights(theta))[None, :], nu=nu)[0])
 
     level = optimize.minimize(lambda v: cost(np.array([v[0], v[0], v[0], v[1]])), np.zeros(2), method="L-BFGS-B", bounds=[(lo, hi)] * 2)
     start = np.array([level.x[0], level.x[0], level.x[0], level.x[1]])
     full = optimize.minimize(cost, start, method="L-BFGS-B", bounds=[(lo, hi)] * 4)
     best = full.x if full.fun < level.fun else start
     shape = np.exp(best[:3] - best[:3].mean())
-    root = np.exp(0.5 * best[:3])
-    weights = np.array([root[i] * root[j] for i, j in pairs] + [np.exp(best[3])])
-    covariance = np.einsum("j,jpab->pab", weights, components) + 1e-12 * np.eye(3)
+    covariance = np.einsum("j,jpab->pab", weights(best), components) + 1e-12 * np.eye(3)
     d2 = np.einsum("pa,pa->p", error, np.linalg.solve(covariance, error[..., None])[..., 0])
     return ShapeFit(shape=shape, likelihood_ratio=float(max(0.0, 2.0 * (level.fun - min(full.fun, level.fun)))), cycles=len(error), tail=fit_noise_quantiles(d2))
