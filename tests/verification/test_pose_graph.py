@@ -364,6 +364,41 @@ def test_a_joint_marginal_queried_earlier_bounds_the_current_one_while_the_graph
     assert IncrementalGraph(ODOM_INFORMATION).epoch not in (epoch, graph.epoch)
 
 
+def test_incremental_graph_relinearises_on_headings_and_positions_by_their_own_thresholds():
+    """Given the headings, a planar pose graph is linear in the positions: a loop that stretches a
+    straight chain of 50 frames by 15 cm is solved exactly by one step. Under the default
+    thresholds (0.05 on every axis) it relinearises 36 of the 50 frames; with 0.2 m on the
+    position, at most the loop's two. A loop that turns the chain relinearises its frames either
+    way and lands on the batch solution."""
+    from lcv_replay.verification.pose_graph import IncrementalGraph, LoopFactor, add_loop_factors, build_graph, optimise_lm
+
+    odom = np.column_stack([np.arange(50.0), np.zeros(50), np.zeros(50)])
+    info = np.diag([1e4, 1e4, 1e4])
+
+    def solved(loop: LoopFactor, **thresholds) -> tuple[IncrementalGraph, int]:
+        graph = IncrementalGraph(ODOM_INFORMATION, **thresholds)
+        graph.extend(odom)
+        graph.update()
+        before = graph.relinearized
+        graph.update(add=[(0, loop)])
+        return graph, graph.relinearized - before
+
+    for measured, turned in (((49.15, 0.0, 0.0), False), ((49.0, 0.0, 0.1), True)):
+        loop = LoopFactor(0, 49, np.array(measured), info)
+        batch = build_graph(odom, ODOM_INFORMATION, [], loop_default_information=info)
+        add_loop_factors(batch, [loop])
+        reference = optimise_lm(batch, odom, relative_error_tol=1e-12).poses
+        for position_m in (0.05, 0.2):
+            graph, relinearized = solved(loop, relinearize_position_m=position_m)
+            assert np.abs(graph.estimate() - odom).max() > (0.5 if turned else 0.1)  # the loop moved the chain
+            if turned:
+                assert relinearized > 20
+                np.testing.assert_allclose(graph.estimate(), reference, atol=1e-3)
+            else:
+                assert (relinearized > 20) if position_m == 0.05 else (relinearized <= 2)
+                np.testing.assert_allclose(graph.estimate(), reference, atol=1e-9)
+
+
 def test_incremental_graph_refactors_with_qr_where_cholesky_calls_stiff_odometry_indeterminate():
     """Odometry declared far stiffer across than along the road (5 cm along, 1.6 mm across,
     0.011 rad of yaw per step): GTSAM 4.3's iSAM2 Cholesky calls a plain chain of 400 frames
