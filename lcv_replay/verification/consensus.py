@@ -1538,6 +1538,8 @@ class ConsensusVerifier(WindowedVerifier):
         sigmas: dict[tuple[int, ...], tuple[np.ndarray | None, bool]] = {}  # see _audit_d2
         held: dict[int, tuple[int, ...]] = {}  # loop -> the revisit whose joint marginal serves it
         for c in suspects.tolist():
+            if c in out:  # left already, with a revisit that failed
+                continue
             revisit = None
             if c not in audited:
                 revisit = self._revisit_of(np.array([c]), accepted[~np.isin(accepted, out)])
