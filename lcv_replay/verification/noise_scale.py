@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lcv_replay.errors import VerificationError
+from lcv_replay.verification.consistency import mahalanobis_d2
 
 #: ``ν`` at which the fit counts as Gaussian (``s χ²(3)``).
 MAX_DOF = 1e4
@@ -329,5 +330,4 @@ def fit_loop_shape(
     best = full.x if full.fun < level.fun else start
     shape = np.exp(best[:3] - best[:3].mean())
     covariance = np.einsum("j,jpab->pab", weights(best), components) + 1e-12 * np.eye(3)
-    d2 = np.einsum("pa,pa->p", error, np.linalg.solve(covariance, error[..., None])[..., 0])
-    return ShapeFit(shape=shape, likelihood_ratio=float(max(0.0, 2.0 * (level.fun - min(full.fun, level.fun)))), cycles=len(error), tail=fit_noise_quantiles(d2))
+    return ShapeFit(shape=shape, likelihood_ratio=float(max(0.0, 2.0 * (level.fun - min(full.fun, level.fun)))), cycles=len(error), tail=fit_noise_quantiles(mahalanobis_d2(error, covariance)))
