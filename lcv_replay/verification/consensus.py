@@ -916,9 +916,8 @@ class ConsensusVerifier(WindowedVerifier):
         (:meth:`_worst`) and judge the rest again, for at most :data:`JOINT_ROUNDS` rounds. A
         round whose one Gauss-Newton step is already far off is not relinearised: its worst
         clusters are taken out at the same linearisation point, which leaves exactly the one step
-        of the rest, and a try given up there is undone exactly; one relinearised where its one
-        step moved much of the map is made on a copy of the graph (:meth:`_copy_if_far`), and
-        given up, undone from it. Returns the clusters still to verify one by one."""
+        of the rest, and a try given up there is undone exactly. Returns the clusters still to
+        verify one by one."""
         aside: list[Cluster] = []
         group = list(clusters)
         before = self._chi2_total()
@@ -926,7 +925,7 @@ class ConsensusVerifier(WindowedVerifier):
         accepted = self.graph.loop_id_array()
         chi2_accepted = self._residual_chi2(x_before, accepted)
         in_graph = np.zeros(0, dtype=np.int64)
-        relinearized, saved = False, None
+        relinearized = False
         factorization = self.graph.factorization  # a switch to QR restarts iSAM2: no exact undo then
         try:
             for _ in range(self.JOINT_ROUNDS):
@@ -951,7 +950,6 @@ class ConsensusVerifier(WindowedVerifier):
                         group = [c for c in group if c not in worst]
                         aside += worst
                         continue
-                    saved, in_saved = self._copy_if_far(x_before, self.graph.estimate()), in_graph
                     self.graph.update(relinearize=True)
                     relinearized = True
                 x = self.graph.estimate()
@@ -968,9 +966,7 @@ class ConsensusVerifier(WindowedVerifier):
                 in_graph = in_graph[~np.isin(in_graph, out)]
                 group = [c for c in group if c not in worst]
                 aside += worst
-            if relinearized and saved is not None:
-                self._undo(saved, before, x_before, remove=in_saved)
-            elif len(in_graph):
+            if len(in_graph):
                 exact = not relinearized and self.graph.factorization == factorization
                 self._apply(remove=in_graph, relinearize=not exact)  # unrelinearised: undone exactly
                 if not exact:
@@ -1016,7 +1012,6 @@ class ConsensusVerifier(WindowedVerifier):
         x_before = self.graph.estimate()
         gate_k = self.cluster_gate(len(members))
         self.last_fit = None  # which members fit the solution of a refused trial (None: not solved)
-        saved = None
         try:
             self._apply(add=members, relinearize=False)
             step = self._chi2_total() - before
@@ -1027,7 +1022,6 @@ class ConsensusVerifier(WindowedVerifier):
                 opponents = self._opponents(x_before, x_step, exclude=members)
                 self._apply(remove=members, relinearize=False)
                 return False, opponents
-            saved = self._copy_if_far(x_before, x_step)
             self.graph.update(relinearize=True)
         except OptimisationFailed as exc:
             log.warning("ilv+: loops %s not verified (%s)", members[:3].tolist(), exc.message)
@@ -1048,55 +1042,9 @@ class ConsensusVerifier(WindowedVerifier):
         self.last_fit = residual < self.gate_chi2
         opponents = self._opponents(x_before, x, exclude=members)
         self._near_misses[int(self._cluster_of[members[0]])] = (after - before) / gate_k
-        self._undo(saved, before, x_before, remove=members)
+        self._apply(remove=members)
+        self._restore(before, x_before)
         return False, opponents
-
-    #: A change whose one Gauss-Newton step moves this fraction of the frames past iSAM2's
-    #: relinearisation thresholds is solved on a copy of the graph (:meth:`_copy_if_far`).
-    COPY_MIN_FRACTION = 0.1
-
-    def _copy_if_far(self, x_before: np.ndarray, x_step: np.ndarray) -> IncrementalGraph | None:
-        """Before a change whose one step went from ``x_before`` to ``x_step`` is solved: where
-        that step moved :data:`COPY_MIN_FRACTION` of the frames or more past the relinearisation
-        thresholds, make a copy of the graph the working graph (:meth:`IncrementalGraph.copy`)
-        and return the graph it copied (for :meth:`_undo`); else ``None``.
-
-        Why: a change refused after its solve is undone by the reverse change, solved again; where
-        the solve relinearised much of the map, so does the undo. On a 10k-pose world with
-        heavy-tailed odometry (grid-10k-heavy-local-1000-s12603) a fifth of the solved trials and
-        contests moved 1,000 frames or more on their one step; made on copies (about 14 ms
-        each), the run took 119 s against 138 s side by side, with the same verdicts (the three
-        heavy-tailed 10k worlds of the nineteenth stop: 309 s against 335 s). Where little moves,
-        a copy costs more than the undo (grouped city10000: the median trial moves no frame past
-        the thresholds, and a copy for every trial took the run from 22.9 to 23.8 s, the means of
-        three rounds; with this rule, 28 copies of 0.15 s in all, and 22.8 and 23.6 s against
-        22.3 and 24.6 in two alternating rounds). The undo from a copy is exact where the
-        reverse change solved lands a little off (chi-squares 1e-3 apart on a 2k ring), and a
-        verdict within that of a gate can go the other way: on 504 validation cases 12 recalls
-        moved, the false loops did not (``docs/verification-bench.md``, twenty-first stop)."""
-        if self.graph.frames_beyond_threshold(x_before, x_step) < self.COPY_MIN_FRACTION * len(x_before):
-            return None
-        saved = self.graph
-        self.graph = saved.copy()
-        return saved
-
-    def _undo(self, saved: IncrementalGraph | None, chi2_before: float, x_before: np.ndarray, *, add: np.ndarray = np.zeros(0, dtype=np.int64), remove: np.ndarray = np.zeros(0, dtype=np.int64)) -> None:
-        """Undo a change that was solved (its reverse: ``add`` and ``remove``). With the graph
-        :meth:`_copy_if_far` set aside at its one step, that graph is the working graph again, and
-        the one step is undone unrelinearised, exactly; else the reverse change is solved. Either
-        way the solution is then checked against the one before (:meth:`_restore`: a reverse
-        change solved can settle elsewhere, and a one step that switched iSAM2 to QR restarted
-        it)."""
-        if saved is None:
-            self._apply(add=add, remove=remove)
-        else:
-            self._retired_updates += self.graph.updates - saved.updates  # the updates made on the copy still count
-            self.graph = saved
-            self._chi2_cache = None
-            # joint covariances remembered from the copy (same epoch, later versions) are not this graph's
-            self._audit_joints = {k: v for k, v in self._audit_joints.items() if v[0] != saved.epoch or v[1] <= saved.version}
-            self._apply(add=add, remove=remove, relinearize=False)
-        self._restore(chi2_before, x_before)
 
     #: After an undo, a chi-square higher than before by more than this (or by this fraction of
     #: it, on a large graph) means that the solution did not come back to the one before.
@@ -1384,7 +1332,6 @@ class ConsensusVerifier(WindowedVerifier):
                 self._fate[outside] = Fate.REJECTED
                 contests.append(_Contest(self._new_hypothesis_id(), tuple(int(i) for i in inside), tuple(int(i) for i in outside), float(step), f"lost: J higher by {step:.1f} after one step"))
                 return "lost"
-            saved = self._copy_if_far(x_before, self.graph.estimate())
             self.graph.update(relinearize=True)
         except OptimisationFailed as exc:
             log.warning("ilv+: contest not decided (%s)", exc.message)
@@ -1412,7 +1359,8 @@ class ConsensusVerifier(WindowedVerifier):
             outcome = f"won: J lower by {-delta:.1f}"
             self._forget_ambiguous(incumbent | challenger)
         elif (delta > margin or searched) and not self._cut_short(challenger, delta, after - before):
-            self._undo(saved, before, x_before, add=inside, remove=outside)
+            self._apply(add=inside, remove=outside)
+            self._restore(before, x_before)
             self._fate[outside] = Fate.REJECTED
             outcome = f"lost: J higher by {delta:.1f}" if delta > margin else f"lost: J within {abs(delta):.1f} (a search: the working hypothesis stays)"
         else:

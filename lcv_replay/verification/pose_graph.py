@@ -373,9 +373,15 @@ class IncrementalGraph:
     ):
         import gtsam
 
-        self._thresholds = (float(relinearize_heading_rad), float(relinearize_position_m))
-        self.factorization = "CHOLESKY"  # iSAM2's; QR after a Cholesky failure (see update)
-        self._params = params = self._isam_params()
+        params = gtsam.ISAM2Params()
+        if relinearize_position_m == relinearize_heading_rad:
+            params.setRelinearizeThreshold(float(relinearize_heading_rad))
+        else:
+            thresholds = gtsam.ISAM2ThresholdMap()  # per dimension of Pose2's tangent (x, y, heading)
+            # keyed by the key's Symbol character: plain frame indices have none ('\0')
+            thresholds.insert(("\0", np.array([relinearize_position_m, relinearize_position_m, relinearize_heading_rad], dtype=np.float64)))
+            params.setRelinearizeThreshold(thresholds)
+        params.relinearizeSkip = 2**30  # relinearise only when asked (force_relinearize)
         self._isam = gtsam.ISAM2(params)
         self._odom_noise = information_to_noise(odom_information, what="odometry")
         self._odom = np.zeros((0, 3))
@@ -383,6 +389,8 @@ class IncrementalGraph:
         self._slots: dict[int, int] = {}  # loop id -> iSAM2 factor index
         self._loop_id_array: np.ndarray | None = None  # loop_ids as an array (cached until the loops change)
         self._loops: dict[int, LoopFactor] = {}
+        self._params = params
+        self.factorization = "CHOLESKY"  # iSAM2's; QR after a Cholesky failure (see update)
         self._estimate: np.ndarray | None = None
         self._linearization: np.ndarray | None = None  # iSAM2's linearisation point (cached until it moves)
         self._last_estimate = np.zeros((0, 3))  # the latest estimate computed (kept across updates)
@@ -394,54 +402,8 @@ class IncrementalGraph:
         self._added_at: dict[int, int] = {}  # loop id -> the version that added it
         self._lost: list[tuple[int, int]] = []  # (version added, version removed) of each loop removed, in order
 
-    def _isam_params(self):
-        """iSAM2's parameters: the relinearisation thresholds and :attr:`factorization`."""
-        import gtsam
-
-        heading_rad, position_m = self._thresholds
-        params = gtsam.ISAM2Params()
-        if position_m == heading_rad:
-            params.setRelinearizeThreshold(heading_rad)
-        else:
-            thresholds = gtsam.ISAM2ThresholdMap()  # per dimension of Pose2's tangent (x, y, heading)
-            # keyed by the key's Symbol character: plain frame indices have none ('\0')
-            thresholds.insert(("\0", np.array([position_m, position_m, heading_rad], dtype=np.float64)))
-            params.setRelinearizeThreshold(thresholds)
-        params.relinearizeSkip = 2**30  # relinearise only when asked (force_relinearize)
-        params.setFactorization(self.factorization)
-        return params
-
     def __len__(self) -> int:
         return len(self._odom)
-
-    def frames_beyond_threshold(self, x_from: np.ndarray, x_to: np.ndarray) -> int:
-        """How many of the frames of ``x_from`` moved, going to ``x_to`` (both ``(N, 3)``), by
-        more than the relinearisation thresholds (the heading by ``relinearize_heading_rad``, the
-        position along either of its own axes by ``relinearize_position_m``): about the frames a
-        relinearisation from one to the other would relinearise."""
-        heading_rad, position_m = self._thresholds
-        n = min(len(x_from), len(x_to))
-        d = x_to[:n] - x_from[:n]
-        c, s = np.cos(x_from[:n, 2]), np.sin(x_from[:n, 2])
-        along, across = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
-        turned = np.abs(se2.wrap_angles(d[:, 2]))
-        return int(np.count_nonzero((turned > heading_rad) | (np.abs(along) > position_m) | (np.abs(across) > position_m)))
-
-    def copy(self) -> "IncrementalGraph":
-        """An independent copy (iSAM2's copy constructor: the Bayes tree, linearisation point and
-        delta are copied, the factors, which nothing modifies, are shared): a trial made on the
-        copy is undone by going back to this graph, exactly and without an update. The copy has
-        the same :attr:`epoch` and :attr:`version`, and counts on from this graph's
-        :attr:`updates`. Cost: about 15 ms for 10,000 frames and 5,000 loops, where undoing a
-        relinearised change by removing its loops re-eliminates and relinearises what it moved."""
-        import gtsam
-
-        other = object.__new__(IncrementalGraph)
-        other.__dict__.update(self.__dict__)
-        other._isam = gtsam.ISAM2(self._isam)
-        other._slots, other._loops, other._added_at = dict(self._slots), dict(self._loops), dict(self._added_at)
-        other._lost = list(self._lost)
-        return other
 
     @property
     def loop_ids(self) -> frozenset[int]:
@@ -546,8 +508,8 @@ class IncrementalGraph:
         yaw per step, 50 mm along it) fails it on a plain chain of 300 frames, which QR solves. QR is
         slower, so it is used from then on only by graphs that need it."""
         log.info("pose graph: iSAM2's Cholesky factorisation failed; refactoring with QR")
+        self._params.setFactorization("QR")
         self.factorization = "QR"
-        self._params = self._isam_params()  # a new object: a copy (see copy) shares the old one
         gone = {int(i) for i in remove}
         loops = {k: v for k, v in self._loops.items() if k not in gone}
         loops.update({int(k): v for k, v in add})

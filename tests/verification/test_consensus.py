@@ -282,37 +282,23 @@ def test_a_true_cluster_blocked_by_a_false_loop_wins_its_contest_on_ringcity(tmp
     assert row.recall >= 0.99
     assert row.ate_rmse_m <= 1.1 * 0.95
 
-def test_a_contest_lost_at_the_end_of_the_log_leaves_the_map_where_it_was(tmp_path, monkeypatch):
+def test_a_contest_lost_at_the_end_of_the_log_leaves_the_map_where_it_was(tmp_path):
     """Vertigo ring with 100 grouped outliers (the extended suite's case): its 434 poses are one
     window, so every contest is at the end of the log and solved to convergence. One such solve,
     lost and undone, settled the ring in another minimum 150 m from where it had been, its
     chi-square higher by only 13.7 (11.2 → 24.9), less than the gate (16.3) that a restart from
     the solution before needed: ATE 78 m with every true loop accepted and no false one. The
     restart now needs the chi-square back within 1 (or a ten-thousandth of it): ATE 1.43 m, the
-    oracle's. Such a solve is now made on a copy of the graph (its one step moves most of the
-    ring), and the copy is thrown away: the map is the one before, to iSAM2's wildfire
-    threshold."""
+    oracle's."""
     from lcv_replay.bench.suite import build_case_log
     from lcv_replay.bench.suites import vertigo_cases
     from lcv_replay.bench.verify import load_inputs, verify_inputs
     from tests.shared_data import shared_path
 
-    undone = []
-    undo = ConsensusVerifier._undo
-
-    def spied(self, saved, chi2_before, x_before, **change):
-        undo(self, saved, chi2_before, x_before, **change)
-        if saved is not None:
-            assert self.graph is saved
-            np.testing.assert_allclose(self.graph.estimate(), x_before, atol=1e-4)
-            undone.append(len(x_before))
-
-    monkeypatch.setattr(ConsensusVerifier, "_undo", spied)
     data = shared_path("vertigo", "ring").parents[1]
     inputs = load_inputs(build_case_log(vertigo_cases("ring", [100], ["group"])[0], data, tmp_path).path)
     run, oracle = verify_inputs(inputs, "ilv+"), verify_inputs(inputs, "oracle").row
     assert any(reason.startswith("lost") for _, reason in run.result.last_step.dropped)  # the contests ran
-    assert undone  # and a solve that moved the map far was undone from its copy
     assert run.row.false_positives == 0
     assert run.row.recall == 1.0
     assert run.row.ate_rmse_m <= 1.01 * oracle.ate_rmse_m
