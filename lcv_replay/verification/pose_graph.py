@@ -562,6 +562,7 @@ class IncrementalGraph:
         try:
             result = self._isam.update(factors, initial_values(initial), [], force_relinearize=True)
             self.updates += 1
+            self.relinearized += result.getVariablesRelinearized()
         except RuntimeError as exc:
             raise OptimisationFailed(f"iSAM2 restart failed: {_first_line(exc)}") from exc
         new_slots = list(result.getNewFactorsIndices())
