@@ -1735,7 +1735,7 @@ class ConsensusVerifier(WindowedVerifier):
             j_working = base.chi2 + gate * len(challengers)
             j_alternative = alternative.chi2 + gate * len(members)
             margin = self.plus.ambiguity_margin * gate
-            log.debug("ilv+: free-end hold of %d loops against %d refused after it: J %.1f against %.1f", len(members), len(challengers), j_alternative, j_working)
+            log.debug("ilv+: free-end hold of %d loops against %d refused in the map it bent: J %.1f against %.1f", len(members), len(challengers), j_alternative, j_working)
             if j_alternative > j_working + margin:
                 continue
             won = j_alternative < j_working - margin and bool(np.all(self._residual_chi2(alternative.poses, challengers) < gate))
