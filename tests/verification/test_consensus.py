@@ -601,6 +601,37 @@ def test_a_false_group_that_took_the_free_end_also_answers_to_the_revisits_refus
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize(("seed", "where", "ate_factor"), [(12805, "10 loops (1615-1624↔557-566)", 1.5), (9900, "11 loops (1133-1148↔189-202)", 1.1)])
+def test_a_false_group_beside_a_true_revisit_that_contradicts_it_is_flagged_ambiguous(tmp_path, seed, where, ate_factor):
+    """Heavy-tailed rings of 2,000 poses with 400 grouped outliers (groups of 10) where a false
+    group runs beside a true revisit of the same road, a frame or two off it, and clustered with
+    it (the pairwise test passes across a few odometry steps through the true loops):
+
+    * 12805 (drawn at the twenty-second stop): the false group of frames 1615-1624 to 557-566
+      lies 1.4 m along the road from the true loops of frames 1597-1612 to 541-556. The final
+      map bends at an odometry slip between the two; the true loops beside the group fail the
+      pairwise gate with its loops by 1.3 to 3.5 times. Its revisit, grown to a fixed point, is
+      the whole true drive (196 loops), so it was never judged as a lone revisit: 10 false loops,
+      recall 0.932. Left out of the final map alone, its chi-square falls by 238, above its
+      cluster gate, and the hypothesis with it is cheaper by only 4.1 gates: flagged ambiguous.
+      The ATE stays 1.42 times the oracle's (0.97 m against 0.68; GNC-TLS 1.29 m), so this case
+      still misses the issue's bar.
+    * 9900 (the fifth stop's known failure): 9 false loops and 2 true ones in one part (frames
+      1133-1148 to 189-202), beside true loops they contradict; left out, the chi-square falls by
+      225, and they save 4.4 gates: flagged ambiguous. 9 false loops -> none, recall 0.971 ->
+      0.974, ATE 1.02 times the oracle's.
+
+    Now the parts of accepted revisits that contradict an accepted loop beside them (a pair
+    across the part's edge fails) are judged on the count alone."""
+    run, oracle = _world_runs(tmp_path, "ring", 2000, 400, seed, methods=("ilv+", "oracle"))
+    assert run.row.false_positives == 0
+    assert run.row.ambiguous - run.row.ambiguous_true >= 9  # the group is shown, not dropped
+    assert any(f"{where} flagged ambiguous" in note for note in run.result.last_step.notes)
+    assert run.row.recall >= 0.93
+    assert run.row.ate_rmse_m <= ate_factor * oracle.row.ate_rmse_m
+
+
+@pytest.mark.slow
 def test_revisits_of_several_places_past_the_last_accepted_loop_join_across_an_odometry_slip(tmp_path):
     """A heavy-tailed ring of 2,000 poses with 400 grouped outliers, seed 12219 (drawn at the
     seventeenth stop). Nothing was accepted past frame 1922; the true revisits of frames 1948-1999
@@ -691,15 +722,12 @@ def test_a_map_in_a_wrong_minimum_gives_way_to_the_hypothesis_built_with_its_run
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, raises=AssertionError, reason="known failure (issue 16): false loops that fit the odometry under the calibrated gate are accepted; see docs/verification-bench.md, 'Fifth stop' and 'Fifteenth stop'")
-@pytest.mark.parametrize(("seed", "group_size"), [(9900, 10), (11604, 20)])
+@pytest.mark.parametrize(("seed", "group_size"), [(11604, 20)])
 def test_fresh_heavy_tailed_rings_where_a_false_group_still_wins(tmp_path, seed, group_size):
-    """Heavy-tailed rings of 2,000 poses with 400 grouped outliers on which ``ilv+`` still
-    accepts false groups:
+    """A heavy-tailed ring of 2,000 poses with 400 grouped outliers on which ``ilv+`` still
+    accepts a false group (9900, listed here until the twenty-third stop, is now
+    ``test_a_false_group_beside_a_true_revisit_that_contradicts_it_is_flagged_ambiguous``):
 
-    * 9900: a cluster of 28 true and 6 false loops (the false ones a few frames off a true
-      revisit, every residual under the gate) is accepted whole; deposed by a true revisit at
-      the end, it comes back whole when tried once more, and two single false loops join across
-      odometry slips: 8 false loops (GNC-TLS accepts none).
     * 11604 (groups of 20, drawn at the fourteenth stop): the last 12 loops of a false group
       (frames 1977-1988 to 977-988) lie after every other accepted loop, at the free end of the
       trajectory, and join in a joint try at the fourth window; left out of the final map they
