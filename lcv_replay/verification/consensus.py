@@ -636,15 +636,19 @@ class ConsensusVerifier(WindowedVerifier):
         return ids[~far]
 
     # ------------------------------------------------------------------ 2. clusters
-    def _bank_pairs(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """Compute the pairwise cycles of loops ``a[i]``, ``b[i]`` (:class:`~.consistency.Cycles`)
-        into the bank; returns their indices in it."""
+    def _pair_cycles(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The pairwise cycles of loops ``a[i]``, ``b[i]`` (:class:`~.consistency.Cycles`):
+        ``(error, loop covariance, odometry covariance)``, both covariances unscaled."""
         cycles = Cycles(self.chain, (self._m[a], self._m[b]), (self._q[a], self._q[b]), (self._z[a], self._z[b]))
-        loop = cycles.covariance((self._cov[a], self._cov[b]), self._exact_odometry())
-        odometry = cycles.covariance(None, None)
+        return cycles.error, cycles.covariance((self._cov[a], self._cov[b]), self._exact_odometry()), cycles.covariance(None, None)
+
+    def _bank_pairs(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Compute the pairwise cycles of loops ``a[i]``, ``b[i]`` (:meth:`_pair_cycles`) into
+        the bank; returns their indices in it."""
+        error, loop, odometry = self._pair_cycles(a, b)
         start = len(self._pair_ids)
         self._pair_ids = np.concatenate([self._pair_ids, np.stack([a, b], axis=1)])
-        self._pair_error = np.concatenate([self._pair_error, cycles.error])
+        self._pair_error = np.concatenate([self._pair_error, error])
         self._pair_loop = np.concatenate([self._pair_loop, loop])
         self._pair_odometry = np.concatenate([self._pair_odometry, odometry])
         return np.arange(start, len(self._pair_ids), dtype=np.int64)
@@ -658,9 +662,14 @@ class ConsensusVerifier(WindowedVerifier):
         index = np.asarray(index, dtype=np.int64)
         if len(index) == 0:
             return np.zeros(0)
+        return self._cycle_d2(self._pair_error[index], self._pair_loop[index], self._pair_odometry[index], loop_scale, odometry_scale)
+
+    def _cycle_d2(self, error: np.ndarray, loop: np.ndarray, odometry: np.ndarray, loop_scale: float | None = None, odometry_scale: float | None = None) -> np.ndarray:
+        """``(K,)`` statistics of pairwise cycles (:meth:`_pair_cycles`) under the noise scales in
+        force (or the ones given)."""
         sl = self.loop_scale if loop_scale is None else loop_scale
         so = self.odometry_scale if odometry_scale is None else odometry_scale
-        return mahalanobis_d2(self._pair_error[index], sl * self._pair_loop[index] + so * self._pair_odometry[index])
+        return mahalanobis_d2(error, sl * loop + so * odometry)
 
 
     def _form_clusters(self, ids: np.ndarray) -> list[Cluster]:
@@ -1951,13 +1960,12 @@ class ConsensusVerifier(WindowedVerifier):
         except OptimisationFailed:
             return None
         span = self.plus.cluster_span_frames
-        q = self._q[members]
-        m = self._m[members]
-        ends = np.concatenate([self._q[refused], self._m[refused]])
-        near = np.zeros(len(ends), dtype=bool)
-        for lo, hi in ((q.min(), q.max()), (m.min(), m.max())):  # either end in either of their stretches
-            near |= (ends >= lo - span) & (ends <= hi + span)
-        displaced = refused[near[:len(refused)] | near[len(refused):]]
+        q, m = self._q[members], self._m[members]
+
+        def in_stretches(frames: np.ndarray) -> np.ndarray:
+            return ((frames >= q.min() - span) & (frames <= q.max() + span)) | ((frames >= m.min() - span) & (frames <= m.max() + span))
+
+        displaced = refused[in_stretches(self._q[refused]) | in_stretches(self._m[refused])]  # either end in either of their stretches
         residual = self._residual_chi2(without.poses, displaced)
         fitting = residual < self.gate_chi2
         drop, allowed = base.chi2 - without.chi2, self._rise_allowed(len(members))
@@ -2101,10 +2109,7 @@ class ConsensusVerifier(WindowedVerifier):
         pairs = neighbour_pairs(self._m[accepted], self._q[accepted], self.plus.cluster_span_frames)
         if len(pairs) == 0:
             return []
-        a, b = accepted[pairs[:, 0]], accepted[pairs[:, 1]]
-        cycles = Cycles(self.chain, (self._m[a], self._m[b]), (self._q[a], self._q[b]), (self._z[a], self._z[b]))
-        cov = self.loop_scale * cycles.covariance((self._cov[a], self._cov[b]), self._exact_odometry()) + self.odometry_scale * cycles.covariance(None, None)
-        fails = mahalanobis_d2(cycles.error, cov) >= self.pair_gate_chi2
+        fails = self._cycle_d2(*self._pair_cycles(accepted[pairs[:, 0]], accepted[pairs[:, 1]])) >= self.pair_gate_chi2
         if not np.any(fails):
             return []
         labels = connected_labels(len(accepted), pairs[~fails])

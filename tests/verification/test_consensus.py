@@ -409,6 +409,15 @@ def _world_rows(tmp_path, layout: str, poses: int, outliers: int, seed: int, met
     return [run.row for run in _world_runs(tmp_path, layout, poses, outliers, seed, methods, group_size)]
 
 
+def _assert_fixed(run, oracle, *, recall: float, note: tuple[str, ...], ate_factor: float = 1.1) -> None:
+    """``run`` (``ilv+``) accepts no false loop, keeps ``recall`` and an ATE within ``ate_factor``
+    of the ``oracle`` run's, and the last step has a note that says each part of ``note``."""
+    assert run.row.false_positives == 0
+    assert run.row.recall >= recall
+    assert run.row.ate_rmse_m <= ate_factor * oracle.row.ate_rmse_m
+    assert any(all(part in text for part in note) for text in run.result.last_step.notes)
+
+
 @pytest.mark.slow
 def test_a_revisit_cut_short_by_the_window_end_does_not_lose_to_a_false_group_on_the_count(tmp_path):
     """A ring of 2,000 poses with heavy-tailed odometry and 400 grouped outliers, seed 9102 (drawn
@@ -575,11 +584,7 @@ def test_a_false_group_that_took_the_free_end_loses_to_the_clusters_refused_in_t
     clusters together: no false loop, recall 0.961, ATE 0.25 m (1.08 times the oracle's; GNC-TLS
     none)."""
     run, oracle = _world_runs(tmp_path, "grid", 2000, 400, 11911, methods=("ilv+", "oracle"))
-    oracle = oracle.row
-    assert run.row.false_positives == 0
-    assert run.row.recall >= 0.95
-    assert run.row.ate_rmse_m <= 1.1 * oracle.ate_rmse_m
-    assert any("took the free end of the trajectory refused" in note for note in run.result.last_step.notes)
+    _assert_fixed(run, oracle, recall=0.95, note=("took the free end of the trajectory refused",))
 
 
 @pytest.mark.slow
@@ -593,11 +598,7 @@ def test_a_false_group_that_took_the_free_end_also_answers_to_the_revisits_refus
     GNC-TLS and DCS accept none). Now every cluster so refused beyond the frontier it took is a
     rival, and against the 14 together it is refused: no false loop, recall 0.990, ATE 0.59 m."""
     run, oracle = _world_runs(tmp_path, "ring", 2000, 400, 12708, methods=("ilv+", "oracle"), group_size=20)
-    oracle = oracle.row
-    assert run.row.false_positives == 0
-    assert run.row.recall >= 0.98
-    assert run.row.ate_rmse_m <= 1.1 * oracle.ate_rmse_m
-    assert any("407-416↔19-28) that took the free end of the trajectory refused" in note for note in run.result.last_step.notes)
+    _assert_fixed(run, oracle, recall=0.98, note=("407-416↔19-28) that took the free end of the trajectory refused",))
 
 
 @pytest.mark.slow
@@ -624,11 +625,8 @@ def test_a_false_group_beside_a_true_revisit_that_contradicts_it_is_flagged_ambi
     Now the parts of accepted revisits that contradict an accepted loop beside them (a pair
     across the part's edge fails) are judged on the count alone."""
     run, oracle = _world_runs(tmp_path, "ring", 2000, 400, seed, methods=("ilv+", "oracle"))
-    assert run.row.false_positives == 0
+    _assert_fixed(run, oracle, recall=0.93, note=(f"{where} flagged ambiguous",), ate_factor=ate_factor)
     assert run.row.ambiguous - run.row.ambiguous_true >= 9  # the group is shown, not dropped
-    assert any(f"{where} flagged ambiguous" in note for note in run.result.last_step.notes)
-    assert run.row.recall >= 0.93
-    assert run.row.ate_rmse_m <= ate_factor * oracle.row.ate_rmse_m
 
 
 @pytest.mark.slow
@@ -658,11 +656,8 @@ def test_a_false_group_judged_on_the_count_answers_to_the_true_loops_it_displace
       saved: flagged ambiguous. Measured: none, recall 0.984, ATE 1.19 m (the oracle's 1.21;
       GNC-TLS none, recall 0.817)."""
     run, oracle = _world_runs(tmp_path, layout, 2000, 400, seed, methods=("ilv+", "oracle"), group_size=group_size)
-    assert run.row.false_positives == 0
+    _assert_fixed(run, oracle, recall=recall, note=(f"{where} flagged ambiguous", fitting))
     assert run.row.ambiguous - run.row.ambiguous_true >= group_size  # the group is shown, not dropped
-    assert any(f"{where} flagged ambiguous" in note and fitting in note for note in run.result.last_step.notes)
-    assert run.row.recall >= recall
-    assert run.row.ate_rmse_m <= 1.1 * oracle.row.ate_rmse_m
 
 
 @pytest.mark.slow
