@@ -1973,8 +1973,9 @@ class ConsensusVerifier(WindowedVerifier):
         the hypothesis with it was cheaper by 10.4 gates, above the margin (20 false loops, recall
         0.753, ATE 10 times the oracle's). Without it the free end follows the odometry, and the
         true loops of its stretch lie 20 gates or more off that map as it is (a residual measures
-        the drift they would correct). Solved with it, 19 of them fit (credit 631): refused, and
-        the screened revisit joins in the relieved map (:meth:`_rejudge_on_count`).
+        the drift they would correct). Solved with it, 19 of the 26 that could fit do (credit
+        631): refused, and the screened revisit joins in the relieved map
+        (:meth:`_rejudge_on_count`).
 
         Why only where it refuses: the loops the solve lets in bend the map to themselves. On a
         fresh heavy-tailed ring (ring-2k-heavy-group-400-s12903) the true revisit of frames
