@@ -1775,9 +1775,9 @@ class ConsensusVerifier(WindowedVerifier):
         in one batch from the final solution, and (:meth:`_judge_on_count`)
 
         * if the chi-square falls, with the truncated cost that the loops of their stretches
-          that were refused or screened out would save in the map without them, by at least the truncated-cost bound
-          (:meth:`_rise_allowed`), the hypothesis without them has the lower ``J``: they are
-          refused;
+          that were refused or screened out would save in the map without them, by at least the
+          truncated-cost bound (:meth:`_rise_allowed`), the hypothesis without them has the
+          lower ``J``: they are refused;
         * if it falls, with that saving, by more than their cluster gate (the final map holds
           them only on the count) and the hypothesis with them has the lower ``J`` by fewer than
           ``count_ambiguity_margin`` gates (a gate per loop, less the fall and that saving),
@@ -1793,8 +1793,8 @@ class ConsensusVerifier(WindowedVerifier):
         often without a solve, so naming no opponent), or within :data:`NEAR_MISS` gates of the
         new map, are tried again (:meth:`_retry_near_misses`; the refused and flagged ones are
         not), and the loops screened out are screened again in the new map and verified
-        (:meth:`_verify`). On s11804 (above, :meth:`_lone_revisits_on_count`) a true revisit of 16 loops
-        (frames 1950-1983 to 66-33) claims the stretch of the flagged group; refused as
+        (:meth:`_verify`). On s11804 (above, :meth:`_lone_revisits_on_count`) a true revisit of
+        16 loops (frames 1950-1983 to 66-33) claims the stretch of the flagged group; refused as
         implausible in the map the group bent, 19 gates off the relieved map, it fits it once
         solved (a rise of 4 for one of its loops) and joins: recall 0.939 -> 0.980, ATE 2.80 ->
         0.76 m. What joins then is judged by the same rule, once
@@ -2008,7 +2008,8 @@ class ConsensusVerifier(WindowedVerifier):
                   len(members), drop, allowed, gate_k, regained, credit)
         where = f"{len(members)} loops ({int(q.min())}-{int(q.max())}↔{int(m.min())}-{int(m.max())})"
         n = regained
-        regained_note = f" and {n} loop{'s' if n > 1 else ''} of their stretches, refused or screened out, fit{'' if n > 1 else 's'} it (together {drop + credit:.0f})" if n else ""
+        regained_note = (f" and {n} loop{'s' if n > 1 else ''} of their stretches, refused or screened out, fit{'' if n > 1 else 's'} it "
+                         f"(together {drop + credit:.0f})") if n else ""
         if drop + credit >= allowed:
             return Fate.REJECTED, (f"end of the log: {where} refused, judged again on the count: without them the final map's "
                                    f"chi-square is {drop:.0f} lower{regained_note} (bound {allowed:.0f})"), rest, without
