@@ -373,7 +373,7 @@ class ConsensusVerifier(WindowedVerifier):
             # verified in the new one now, not at the next window, by when the stretch they would
             # hold may have taken false groups that nothing contradicted (ring s11803: a true
             # revisit of 373 such loops waited, and two false groups of 10 joined at its free end)
-            losers = self._verify(self._form_clusters(self._screen()))
+            losers = self._verify_waiting()
             budget = self._contest_losers(losers, contests, budget)
         if final:  # every standing conflict once more, solved in full (see _contest)
             # with a budget of their own: the last window's new losers may have spent the window's
@@ -389,10 +389,10 @@ class ConsensusVerifier(WindowedVerifier):
         notes: list[str] = []
         if final:
             if np.any(self._fate == Fate.PENDING):  # sent back to the pool in this last window
-                self._verify(self._form_clusters(self._screen()), final=True)
+                self._verify_waiting(final=True)
             built = self._largest_first()
             if built:  # the loops the screen kept out of the map it replaced, and those it left out
-                losers = self._verify(self._form_clusters(self._screen()), final=True)
+                losers = self._verify_waiting(final=True)
                 self._contest_losers(losers, contests, self.plus.max_contests_per_window)
             notes += built
             for retry, how in (
@@ -625,7 +625,7 @@ class ConsensusVerifier(WindowedVerifier):
         m, q = self._m[ids], self._q[ids]
         r = se2.between_residuals(x, m, q, self._z[ids])
         loop_cov = self.loop_scale * self._cov[ids]
-        odometry = self._odometry_bound(x, ids)
+        odometry = self._odometry_bound(x, ids, r)
         transport = se2.adjoint_inverse(se2.between(x[m], x[q]))
         marginals = 2.0 * (self._marginal[q] + transport @ self._marginal[m] @ np.swapaxes(transport, -1, -2))
         bound = np.maximum(odometry, mahalanobis_d2(r, loop_cov + marginals))
@@ -802,6 +802,11 @@ class ConsensusVerifier(WindowedVerifier):
                 cluster.opponents |= opponents
                 losers.append((cluster, opponents))
         return losers
+
+    def _verify_waiting(self, *, final: bool = False) -> list[tuple[Cluster, set[int]]]:
+        """Screen the pending and screened-out loops again in the current map, cluster those that
+        pass and verify the clusters (:meth:`_verify`); returns the losers."""
+        return self._verify(self._form_clusters(self._screen()), final=final)
 
     def _noted_retry(self, retry: Callable[[], None], how: str) -> list[str]:
         """Run an end-of-log ``retry``; returns the step's note on the refused loops it accepted
@@ -1922,7 +1927,7 @@ class ConsensusVerifier(WindowedVerifier):
         before = self._fate == Fate.ACCEPTED
         self._retry_near_misses(exclude=gone_clusters)
         if np.any(np.isin(self._fate, (Fate.PENDING, Fate.SCREENED))):  # those screened out in the map they bent
-            self._verify(self._form_clusters(self._screen()), final=True)
+            self._verify_waiting(final=True)
         came = np.flatnonzero((self._fate == Fate.ACCEPTED) & ~before)
         if len(came):
             notes.append(f"end of the log: {len(came)} refused or screened-out loop{'s' if len(came) > 1 else ''} accepted once those left")
@@ -2007,9 +2012,9 @@ class ConsensusVerifier(WindowedVerifier):
         log.debug("ilv+: %d loops judged again: chi-square %.1f lower without them, bound %.1f, cluster gate %.1f, %d displaced loops of their stretches fit without them (%.1f)",
                   len(members), drop, allowed, gate_k, regained, credit)
         where = f"{len(members)} loops ({int(q.min())}-{int(q.max())}↔{int(m.min())}-{int(m.max())})"
-        n = regained
-        regained_note = (f" and {n} loop{'s' if n > 1 else ''} of their stretches, refused or screened out, fit{'' if n > 1 else 's'} it "
-                         f"(together {drop + credit:.0f})") if n else ""
+        plural = regained > 1
+        regained_note = (f" and {regained} loop{'s' if plural else ''} of their stretches, refused or screened out, fit{'' if plural else 's'} it "
+                         f"(together {drop + credit:.0f})") if regained else ""
         if drop + credit >= allowed:
             return Fate.REJECTED, (f"end of the log: {where} refused, judged again on the count: without them the final map's "
                                    f"chi-square is {drop:.0f} lower{regained_note} (bound {allowed:.0f})"), rest, without
@@ -2031,12 +2036,13 @@ class ConsensusVerifier(WindowedVerifier):
 
         return candidates[in_stretches(self._q[candidates]) | in_stretches(self._m[candidates])]
 
-    def _odometry_bound(self, x: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    def _odometry_bound(self, x: np.ndarray, ids: np.ndarray, r: np.ndarray | None = None) -> np.ndarray:
         """The statistics of loops ``ids`` at ``x`` under their covariance plus the odometry's
         between their two frames: a lower bound of their innovation in any map that holds the
-        odometry (the screen's first bound, :meth:`_screen`)."""
+        odometry (the screen's first bound, :meth:`_screen`). ``r``: their residuals at ``x``,
+        if known."""
         m, q = self._m[ids], self._q[ids]
-        r = se2.between_residuals(x, m, q, self._z[ids])
+        r = se2.between_residuals(x, m, q, self._z[ids]) if r is None else r
         return mahalanobis_d2(r, self.loop_scale * self._cov[ids] + self.odometry_scale * self.chain.segment_covariance(m, q))
 
     #: Solves of :meth:`_solved_credit` (each leaves out the loops that did not fit the last).

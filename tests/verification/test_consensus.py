@@ -671,8 +671,8 @@ def test_a_false_group_holding_the_free_end_answers_to_the_true_revisit_it_scree
     credited with nothing it displaced and stayed, cheaper by 10.4 gates: 20 false loops, recall
     0.753, ATE 10 times the oracle's. Now the loops of its stretches, screened out or refused, are
     solved with the map without it; 19 of the 26 that could fit do, the group is refused and the
-    revisit joins in the relieved map. Measured: none, recall 0.978, ATE 0.85 m (the oracle's 0.88; GNC-TLS none,
-    recall 0.834)."""
+    revisit joins in the relieved map. Measured: none, recall 0.978, ATE 0.85 m (the oracle's
+    0.88; GNC-TLS none, recall 0.834)."""
     run, oracle = _world_runs(tmp_path, "ring", 2000, 400, 13201, methods=("ilv+", "oracle"), group_size=20)
     _assert_fixed(run, oracle, recall=0.97, note=("20 loops (1846-1865↔818-837) refused, judged again on the count", "of their stretches, refused or screened out, fit it"))
 
