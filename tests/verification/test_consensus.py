@@ -122,6 +122,39 @@ def test_the_leave_out_statistic_of_a_revisit_is_the_rise_its_loops_cause_togeth
     assert left_out([lone]) is None
 
 
+def test_the_solved_credit_counts_a_gate_a_loop_less_the_rise_and_solves_nothing_it_cannot_use(monkeypatch):
+    """``_solved_credit``: true loops left out of the map and solved back with it save about a
+    gate each (less the chi-square they raise); where the loops left could not reach the credit
+    asked for even at a gate each, no batch solve is made (each is a solve of the whole map,
+    1 to 3 s on a 2,000-pose graph), and a false group solved with the map earns nothing."""
+    world = circle_world(frames_per_lap=200, laps=2.0, true_every=2, num_false=0, yaw_bias_rad=0.0002)
+    true = [_loop(world, q, q - 200) for q in range(205, 400, 2)]
+    group = [_loop(world, q, q - 150, T_match_query=(0.05, -0.02, 0.01)) for q in range(300, 310)]
+    verifier, _, result = _run(world, true + group)
+    pairs = [c.candidate.pair for c in result.constraints]
+    accepted = np.asarray(result.accepted_constraint_ids)
+    assert {pairs[i] for i in accepted} == {c.pair for c in true}
+    left_out = accepted[10:20]
+    rest = accepted[~np.isin(accepted, left_out)]
+    x = verifier.graph.estimate()
+    without = verifier._batch_solution(rest, x)
+    solves = []
+    batch = ConsensusVerifier._batch_solution
+    monkeypatch.setattr(ConsensusVerifier, "_batch_solution", lambda v, loops, initial, **kw: solves.append(len(loops)) or batch(v, loops, initial, **kw))
+    gate = verifier.gate_chi2
+    credit, loops = verifier._solved_credit(rest, left_out, without, needed=gate)
+    assert loops == 10 and 0.75 * 10 * gate < credit < 10 * gate  # true loops raise the chi-square by about their noise
+    assert solves == [len(accepted)]  # every one fits the first solve
+    solves.clear()
+    assert verifier._solved_credit(rest, left_out, without, needed=10 * gate + 1) == (0.0, 0)
+    assert solves == []  # ten loops cannot save more than ten gates
+    solves.clear()
+    false = np.array([i for i, pair in enumerate(pairs) if pair in {c.pair for c in group}])
+    assert len(false) == 10 and not np.isin(false, accepted).any()
+    assert verifier._solved_credit(accepted, false, verifier._batch_solution(accepted, x), needed=gate) == (0.0, 0)
+    assert 1 <= len(solves) <= ConsensusVerifier.CREDIT_SOLVES
+
+
 def test_the_audit_reuses_earlier_marginals_for_its_passes_and_queries_current_ones_for_its_failures(monkeypatch):
     """The audit's leave-out tests first use a revisit's joint marginal queried at an earlier
     window (it bounds the current one: a pass under it is a pass now), and a test that fails
