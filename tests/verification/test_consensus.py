@@ -148,10 +148,11 @@ def test_the_solved_credit_counts_a_gate_a_loop_less_the_rise_and_solves_nothing
     solves.clear()
     assert verifier._solved_credit(rest, left_out, without, needed=10 * gate + 1) == (0.0, 0)
     assert solves == []  # ten loops cannot save more than ten gates
-    solves.clear()
     false = np.array([i for i, pair in enumerate(pairs) if pair in {c.pair for c in group}])
     assert len(false) == 10 and not np.isin(false, accepted).any()
-    assert verifier._solved_credit(accepted, false, verifier._batch_solution(accepted, x), needed=gate) == (0.0, 0)
+    final = verifier._batch_solution(accepted, x)
+    solves.clear()
+    assert verifier._solved_credit(accepted, false, final, needed=gate) == (0.0, 0)
     assert 1 <= len(solves) <= ConsensusVerifier.CREDIT_SOLVES
 
 
