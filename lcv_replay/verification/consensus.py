@@ -2059,8 +2059,8 @@ class ConsensusVerifier(WindowedVerifier):
         """The truncated cost that the loops ``near`` save in the map of the ``rest`` loops
         (solved as ``without``) once solved with it: the loops are solved with it, those that do
         not fit the solution (residual above the gate) are left out and the rest solved again
-        (at most :data:`CREDIT_SOLVES` solves in all) until every one fits; then a gate each less the rise
-        of the chi-square they cause. Returns ``(credit, loops)``, ``(0, 0)`` where none fits or
+        (at most :data:`CREDIT_SOLVES` solves in all) until every one fits; then a gate each less
+        the rise of the chi-square they cause. Returns ``(credit, loops)``, ``(0, 0)`` where none fits or
         the credit cannot reach ``needed``: the loops left could save a gate each at most (the
         rise is not negative from a converged ``without``), so no solve is made once they are too
         few for it.
