@@ -126,7 +126,9 @@ def test_the_solved_credit_counts_a_gate_a_loop_less_the_rise_and_solves_nothing
     """``_solved_credit``: true loops left out of the map and solved back with it save about a
     gate each (less the chi-square they raise); where the loops left could not reach the credit
     asked for even at a gate each, no batch solve is made (each is a solve of the whole map,
-    1 to 3 s on a 2,000-pose graph), and a false group solved with the map earns nothing."""
+    1 to 3 s on a 2,000-pose graph), and a false group solved with the map earns nothing. Each
+    solve is made loose first, and converged only where every loop fits and the credit is within
+    reach with half the loose rise."""
     world = circle_world(frames_per_lap=200, laps=2.0, true_every=2, num_false=0, yaw_bias_rad=0.0002)
     true = [_loop(world, q, q - 200) for q in range(205, 400, 2)]
     group = [_loop(world, q, q - 150, T_match_query=(0.05, -0.02, 0.01)) for q in range(300, 310)]
@@ -140,20 +142,26 @@ def test_the_solved_credit_counts_a_gate_a_loop_less_the_rise_and_solves_nothing
     without = verifier._batch_solution(rest, x)
     solves = []
     batch = ConsensusVerifier._batch_solution
-    monkeypatch.setattr(ConsensusVerifier, "_batch_solution", lambda v, loops, initial, **kw: solves.append(len(loops)) or batch(v, loops, initial, **kw))
-    gate = verifier.gate_chi2
+    monkeypatch.setattr(ConsensusVerifier, "_batch_solution", lambda v, loops, initial, **kw: solves.append((len(loops), kw.get("relative_error_tol"))) or batch(v, loops, initial, **kw))
+    gate, loose = verifier.gate_chi2, ConsensusVerifier.CREDIT_TOLERANCE
     credit, loops = verifier._solved_credit(rest, left_out, without, needed=gate)
     assert loops == 10 and 0.75 * 10 * gate < credit < 10 * gate  # true loops raise the chi-square by about their noise
-    assert solves == [len(accepted)]  # every one fits the first solve
+    assert solves == [(len(accepted), loose), (len(accepted), None)]  # every one fits the loose solve, which is then converged
+    converged = without.chi2 + 10 * gate - credit
+    rise = batch(verifier, accepted, without.poses, relative_error_tol=loose).chi2 - without.chi2
+    assert rise >= converged - without.chi2 - 1e-6  # the loose solve stopped at an earlier iterate of the same run
     solves.clear()
     assert verifier._solved_credit(rest, left_out, without, needed=10 * gate + 1) == (0.0, 0)
     assert solves == []  # ten loops cannot save more than ten gates
+    assert verifier._solved_credit(rest, left_out, without, needed=10 * gate - ConsensusVerifier.CREDIT_RISE_SLACK * rise + 1e-3) == (0.0, 0)
+    assert solves == [(len(accepted), loose)]  # out of reach even with half the loose rise: not converged
     false = np.array([i for i, pair in enumerate(pairs) if pair in {c.pair for c in group}])
     assert len(false) == 10 and not np.isin(false, accepted).any()
     final = verifier._batch_solution(accepted, x)
     solves.clear()
     assert verifier._solved_credit(accepted, false, final, needed=gate) == (0.0, 0)
     assert 1 <= len(solves) <= ConsensusVerifier.CREDIT_SOLVES
+    assert all(tol == loose for _, tol in solves)  # it never fitted: no solve converged
 
 
 def test_the_audit_reuses_earlier_marginals_for_its_passes_and_queries_current_ones_for_its_failures(monkeypatch):
