@@ -1856,7 +1856,6 @@ class ConsensusVerifier(WindowedVerifier):
         accepted = self._ids(Fate.ACCEPTED)
         if len(accepted) == 0:
             return notes
-        bent = self.graph.estimate()  # the map before this judgement's verdicts leave it
         on_count = [c for c, _ in sorted(self._on_count.items(), key=lambda kv: (-kv[1], kv[0])) if c in self.clusters]
         suspects = [(members, True) for members in (self._members({c}, Fate.ACCEPTED) for c in on_count) if len(members) >= self.plus.frontier_min_loops]
         suspects += [(revisit, True) for revisit in self._lone_revisits_on_count(accepted, holding=joined)]
@@ -1866,7 +1865,8 @@ class ConsensusVerifier(WindowedVerifier):
         if not suspects:
             return notes
         try:
-            base = self._batch_solution(accepted, self.graph.estimate())
+            bent = self.graph.estimate()  # the map before this judgement's verdicts leave it
+            base = self._batch_solution(accepted, bent)
         except OptimisationFailed as exc:
             log.warning("ilv+: the final map could not be solved in one batch (%s); no cluster judged again", exc.message)
             return notes
@@ -1933,7 +1933,8 @@ class ConsensusVerifier(WindowedVerifier):
             if c.opponents & gone_clusters or rival:  # refused against them, or in the map they bent where they held its stretch
                 self._near_misses[c.id] = 0.0  # whatever ratio an earlier try, in the map they bent, left
         before = self._fate == Fate.ACCEPTED
-        self._retry_near_misses(exclude=gone_clusters, relieved_since=min((self.clusters[c].window for c in gone_clusters if c in self.clusters), default=None), bent=bent)
+        since = min((self.clusters[c].window for c in gone_clusters if c in self.clusters), default=None)
+        self._retry_near_misses(exclude=gone_clusters, relieved=None if since is None else (since, bent))
         if np.any(np.isin(self._fate, (Fate.PENDING, Fate.SCREENED))):  # those screened out in the map they bent
             self._verify_waiting(final=True)
         came = np.flatnonzero((self._fate == Fate.ACCEPTED) & ~before)
@@ -2476,7 +2477,7 @@ class ConsensusVerifier(WindowedVerifier):
     #: the departure (the departure relieved it).
     RELIEVED = 0.5
 
-    def _retry_near_misses(self, exclude: set[int] | frozenset[int] = frozenset(), *, relieved_since: int | None = None, bent: np.ndarray | None = None) -> None:
+    def _retry_near_misses(self, exclude: set[int] | frozenset[int] = frozenset(), *, relieved: tuple[int, np.ndarray] | None = None) -> None:
         """At the end of the log, try once more the refused loops of the clusters refused by a
         solve with an innovation within :data:`NEAR_MISS` gates (the hypothesis they were refused
         by held fewer loops than the final one), of the clusters a contest deposed and of the
@@ -2517,8 +2518,9 @@ class ConsensusVerifier(WindowedVerifier):
         a false group bent, and the ratio it left kept the cluster from the relieved map: recall
         0.978 -> 0.966.
 
-        In a map relieved of what :meth:`_rejudge_on_count` refused or flagged (the earliest of
-        those clusters formed at window ``relieved_since``), the refused clusters of
+        In a map relieved of what :meth:`_rejudge_on_count` refused or flagged (``relieved``: the
+        window the earliest of those clusters formed at, and the map before they left), the
+        refused clusters of
         ``frontier_min_loops`` loops or more formed at that window or later (judged in the map
         those bent) that lie far from it, but whose members' median statistic under the
         odometry alone (:meth:`_odometry_bound`) is below the gate, are tried too, with a solve
@@ -2542,8 +2544,8 @@ class ConsensusVerifier(WindowedVerifier):
         trial, and another false group of 10 (1988-1997 to 21-30) joins in the second round; the
         third judgement flags it (no false loop, 30 flagged).
 
-        Only the clusters that the departure relieved are solved (``bent``, the map before it:
-        their median residual now below :data:`RELIEVED` of theirs there): on a fresh heavy-tailed
+        Only the clusters that the departure relieved are solved (their median residual now below
+        :data:`RELIEVED` of theirs in the map before it): on a fresh heavy-tailed
         5k grid (grid-5k-heavy-group-1000-s13306, drawn at the twenty-eighth stop) a true group of
         9 loops is flagged, its departure moves the map by at most 0.36 m where the far clusters
         lie, and 54 of them (3 to 10 loops, each at 0.99 to 1.00 of its residual before) were
@@ -2573,9 +2575,9 @@ class ConsensusVerifier(WindowedVerifier):
                 near = large and np.median(chi2) < self.NEAR_MISS * self.gate_chi2
                 if near or self._fits_as_is(chi2):
                     retry[c] = self.clusters[c]
-                elif (relieved_since is not None and bent is not None and self.clusters[c].window >= relieved_since and large
+                elif (relieved is not None and self.clusters[c].window >= relieved[0] and large
                       and np.median(self._odometry_bound(x, members)) < self.gate_chi2
-                      and np.median(chi2) < self.RELIEVED * np.median(self._residual_chi2(bent, members))):
+                      and np.median(chi2) < self.RELIEVED * np.median(self._residual_chi2(relieved[1], members))):
                     retry[c] = self.clusters[c]  # far from the relieved map, not from the odometry: solved
                     solved.add(c)
             retry = {c: cluster for c, cluster in retry.items() if tried.get(c, -1) < joins}

@@ -434,15 +434,22 @@ def test_true_loops_refused_under_odometry_declared_too_tight_are_tried_under_th
     assert row.recall >= 0.992
 
 
-def _world_runs(tmp_path, layout: str, poses: int, outliers: int, seed: int, methods=("ilv+",), group_size: int = 10, noise: str = "heavy"):
-    """Runs (``bench verify``'s) of ``methods`` on a generated world with grouped outliers and
-    (by default) heavy-tailed odometry."""
+def _world_inputs(tmp_path, layout: str, poses: int, outliers: int, seed: int, group_size: int = 10, noise: str = "heavy"):
+    """``bench verify``'s inputs of a generated world with grouped outliers and (by default)
+    heavy-tailed odometry."""
     from lcv_replay.bench.suite import build_case_log
     from lcv_replay.bench.suites import world_cases
-    from lcv_replay.bench.verify import load_inputs, verify_inputs
+    from lcv_replay.bench.verify import load_inputs
 
     case = world_cases([layout], [poses], [noise], ["group"], [outliers], [seed], group_size=group_size)[0]
-    inputs = load_inputs(build_case_log(case, Path("/nonexistent"), tmp_path).path)
+    return load_inputs(build_case_log(case, Path("/nonexistent"), tmp_path).path)
+
+
+def _world_runs(tmp_path, layout: str, poses: int, outliers: int, seed: int, methods=("ilv+",), group_size: int = 10, noise: str = "heavy"):
+    """Runs (``bench verify``'s) of ``methods`` on a generated world (:func:`_world_inputs`)."""
+    from lcv_replay.bench.verify import verify_inputs
+
+    inputs = _world_inputs(tmp_path, layout, poses, outliers, seed, group_size, noise)
     return [verify_inputs(inputs, method) for method in methods]
 
 
@@ -471,12 +478,9 @@ def test_refused_revisits_that_fit_once_others_joined_at_the_end_are_tried_again
     nothing tried them again: recall 0.971, ATE 1.24 m (1.16 times the oracle's 1.06; GNC-TLS
     none, 0.837, 1.09 m). Now the clusters are chosen again after each round that let some in:
     measured no false loop, recall 0.985, ATE 1.07 m."""
-    from lcv_replay.bench.suite import build_case_log
-    from lcv_replay.bench.suites import world_cases
-    from lcv_replay.bench.verify import load_inputs, verify_inputs
+    from lcv_replay.bench.verify import verify_inputs
 
-    case = world_cases(["ring"], [2000], ["heavy"], ["group"], [400], [13514])[0]
-    inputs = load_inputs(build_case_log(case, Path("/nonexistent"), tmp_path).path)
+    inputs = _world_inputs(tmp_path, "ring", 2000, 400, 13514)
     run, oracle = verify_inputs(inputs, "ilv+"), verify_inputs(inputs, "oracle").row
     revisits = [i for i, c in enumerate(inputs.candidates) if 1618 <= c.query_frame <= 1632 and c.pair in inputs.true_pairs]
     assert len(revisits) >= 9
@@ -496,12 +500,9 @@ def test_true_revisits_kept_out_without_a_solve_by_a_flagged_group_are_solved_in
     false loop, but recall 0.869 and ATE 6.37 m, 10.3 times the oracle's 0.62 m (GNC-TLS none,
     0.802, 0.83 m). Now they are tried with a solve: measured recall 0.970, ATE 0.88 m (1.43 times
     the oracle's: still short of the bar)."""
-    from lcv_replay.bench.suite import build_case_log
-    from lcv_replay.bench.suites import world_cases
-    from lcv_replay.bench.verify import load_inputs, verify_inputs
+    from lcv_replay.bench.verify import verify_inputs
 
-    case = world_cases(["ring"], [2000], ["heavy"], ["group"], [400], [13518], group_size=20)[0]
-    inputs = load_inputs(build_case_log(case, Path("/nonexistent"), tmp_path).path)
+    inputs = _world_inputs(tmp_path, "ring", 2000, 400, 13518, group_size=20)
     run, oracle = verify_inputs(inputs, "ilv+"), verify_inputs(inputs, "oracle").row
     assert run.row.false_positives == 0
     assert any("(1920-1934↔153-167) flagged ambiguous" in note for note in run.result.last_step.notes)
