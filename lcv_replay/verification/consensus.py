@@ -1964,7 +1964,8 @@ class ConsensusVerifier(WindowedVerifier):
         decides only where it refuses the members (the bound, as a contest is won by the
         ambiguity margin); where they win it, the first credit's verdict stands. Where it does
         not refuse them, the revisits among those loops that contradict the members are solved
-        with the map each alone (:meth:`_contradicting_revisits`), and where one refuses them so,
+        with the map each alone (:meth:`_contradicting_revisits`; not where the members hold the
+        free end against rivals, whose contest comes after), and where one refuses them so,
         two revisits of one stretch that exclude each other contest it: the members are refused
         only where the hypothesis without them is cheaper by ``count_ambiguity_margin`` gates,
         and flagged ambiguous otherwise.
@@ -2036,6 +2037,15 @@ class ConsensusVerifier(WindowedVerifier):
         by 3.4 gates). Refused, it made way for the other, which joined in the relieved map and
         was not judged again: 10 false loops, ATE 2.59 -> 13.5 m. Flagged (as the count alone
         flagged it before), the other fails its trial there, as before.
+
+        Why not for a free-end hold with rivals (:meth:`_contest_free_end_holds`, after this
+        judgement): that contest puts all its rivals together against it. On
+        ring-2k-heavy-group-400-s12708 (groups of 20) the false group of 10 that took the free end
+        at the first window (407-416 to 19-28) is refused there against the 14 true loops it had
+        kept out, together (``J`` 193.6 lower); judged here first, the true revisit 434-448 to
+        16-30 alone (8 loops, credit 7.6 gates) left the two truncated costs 0.6 gates apart, so it
+        was flagged, and the other 10 loops of the same false group joined in its stead and were
+        flagged in turn: 20 false loops flagged, where that contest refuses them.
         """
         rest = held[~np.isin(held, members)]
         try:
@@ -2054,7 +2064,8 @@ class ConsensusVerifier(WindowedVerifier):
             near = displaced[self._odometry_bound(without.poses, displaced) < self.NEAR_MISS * self.gate_chi2]
             if len(near) > regained:
                 solved, joined = self._solved_credit(rest, near, without, needed=allowed - drop)
-                for part in [] if drop + solved >= allowed else self._contradicting_revisits(members, near):
+                holds = any(self._free_end_holds.get(c) for c in np.unique(self._cluster_of[members]).tolist())  # contested later, all rivals together
+                for part in [] if drop + solved >= allowed or holds else self._contradicting_revisits(members, near):
                     solved, joined = self._solved_credit(rest, part, without, needed=allowed - drop)
                     if drop + solved >= allowed:  # a contest of two revisits of one stretch: refused only by the margin
                         by_part = True
