@@ -2064,12 +2064,12 @@ class ConsensusVerifier(WindowedVerifier):
             near = displaced[self._odometry_bound(without.poses, displaced) < self.NEAR_MISS * self.gate_chi2]
             if len(near) > regained:
                 solved, joined = self._solved_credit(rest, near, without, needed=allowed - drop)
-                holds = any(self._free_end_holds.get(c) for c in np.unique(self._cluster_of[members]).tolist())  # contested later, all rivals together
-                for part in [] if drop + solved >= allowed or holds else self._contradicting_revisits(members, near):
-                    solved, joined = self._solved_credit(rest, part, without, needed=allowed - drop)
-                    if drop + solved >= allowed:  # a contest of two revisits of one stretch: refused only by the margin
-                        by_part = True
-                        break
+                if drop + solved < allowed:  # the revisits among them that contradict them, each alone
+                    for part in self._contradicting_revisits(members, near):
+                        solved, joined = self._solved_credit(rest, part, without, needed=allowed - drop)
+                        if drop + solved >= allowed:  # a contest of two revisits of one stretch: refused only by the margin
+                            by_part = True
+                            break
                 if drop + solved >= allowed:  # it decides only where it refuses them
                     credit, regained = solved, joined
         saved_gates = len(members) - (drop + credit) / self.gate_chi2  # what the hypothesis with them saves in truncated cost
@@ -2103,7 +2103,10 @@ class ConsensusVerifier(WindowedVerifier):
         or more) that contradict ``members``: the median statistic of their pairwise cycles with
         the members' loops (:meth:`_pair_cycles`, under the noise scales in force) at the pairwise
         gate or above. Largest first, at most :data:`CREDIT_PARTS`. Loops never clustered
-        (screened out) are not in any."""
+        (screened out) are not in any. None where ``members`` hold the free end against rivals:
+        :meth:`_contest_free_end_holds` contests them later, all rivals together."""
+        if any(self._free_end_holds.get(c) for c in np.unique(self._cluster_of[members]).tolist()):
+            return []
         parts: list[np.ndarray] = []
         clusters = self._cluster_of[near]
         for c in np.unique(clusters[clusters >= 0]).tolist():
