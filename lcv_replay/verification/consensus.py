@@ -2960,7 +2960,7 @@ class ConsensusVerifier(WindowedVerifier):
         Why a slip in the final map switches it on too (:meth:`_slip_shows`): the tail is fitted
         to the innovations of the accepted clusters, and the loops a slip strains are refused, so
         they are not in the sample. On a fresh heavy-tailed grid (grid-2k-heavy-group-400-s13520)
-        the fit was Gaussian (no tail) while three odometry steps of the final map stood at 30
+        the fit was Gaussian (no tail) while three odometry steps of the final map stood at 29
         to 58 (the threshold 27.3); under Cauchy odometry 9 refused true loops of frames 649-656
         and 881 fit and join, and no false one fits within 5 gates: ATE 0.473 -> 0.345 m (the
         oracle's 0.255, DCS 0.259)."""

@@ -427,10 +427,10 @@ def test_a_slip_that_the_final_map_shows_switches_on_the_retry_across_slips(tmp_
     """A heavy-tailed grid of 2,000 poses with 400 grouped outliers, seed 13520 (drawn at the
     twenty-eighth stop). The innovations of the accepted clusters fit a Gaussian (no tail: the
     loops a slip strains are refused, so they are not in the sample), which kept the retry
-    across slips off, while three odometry steps of the final map stand at 30 to 58 against a
+    across slips off, while three odometry steps of the final map stand at 29 to 58 against a
     threshold of 27.3. Under heavy-tailed odometry 9 refused true loops (frames 851-1376 to
     649-656, and 1553 to 881) fit the accepted loops' solution and join. Measured: recall 0.938
-    -> 0.949, ATE 0.473 -> 0.345 m (1.86 -> 1.35 times the oracle's 0.255; GNC-TLS 0.390, DCS
+    -> 0.949, ATE 0.473 -> 0.345 m (1.85 -> 1.35 times the oracle's 0.255; GNC-TLS 0.390, DCS
     0.259), no false loop either way."""
     from lcv_replay.bench.verify import verify_inputs
 
