@@ -2772,20 +2772,7 @@ class ConsensusVerifier(WindowedVerifier):
         37, gate 30.9, tail 40.8: 8 of 9), ringCity's one at seed 9001 (17.3); their false loops
         lie at 820 or more under the fitted level. (Looser fitted level, generated worlds with
         heavy-tailed odometry declared 2.2 times too tight:) grid-2k-heavy-group-500-s2 0.988 ->
-        0.993, ring-10k-heavy-group-1000-s5 0.975 -> 0.981, no false loop.
-
-        Then, still under that level, the clusters refused without a contest
-        (:meth:`_refused_on_a_bound`: no opponent, no near-miss ratio), largest first, that the
-        bound of :meth:`_implausible_now` no longer proves implausible under it, are tried with
-        a solve. Why: they were refused on that bound under the tighter level, and lie too far
-        off the final map for the retries that go by residual. On a fresh heavy-tailed grid
-        (grid-2k-heavy-group-400-s13565, drawn at the thirty-first stop) five true revisits of
-        frames 1545-1568 (of five places, 18 loops) were refused so at the last window, 28 to 74
-        gates off the map; under the looser level (4.8 times) the revisit of 1553-1559 to
-        153-159 (7 loops) raises the chi-square by 4.0 gates once solved, and joins: recall 0.961
-        -> 0.972, ATE 0.388 -> 0.236 m (the oracle's 0.225; DCS 0.223, GNC-TLS 0.361). A false
-        group stays implausible under that level: on the 339 validation logs no other row
-        changes."""
+        0.993, ring-10k-heavy-group-1000-s5 0.975 -> 0.981, no false loop."""
         looser = 1.0
         if self.level_fit is not None and self.level_fit.significant(self.plus.calibration_confidence):
             looser = max(looser, self.level_fit.scale)
@@ -2815,26 +2802,6 @@ class ConsensusVerifier(WindowedVerifier):
         for _, c in sorted(near):
             ok = self._try_again(np.array([c], dtype=np.int64))
             log.debug("ilv+: under the odometry level %.3g, loop %d %s", looser, c, "accepted" if ok else "refused")
-        for members in self._refused_on_a_bound():  # largest first
-            members = members[self._fate[members] == Fate.REJECTED]
-            if len(members) < self.plus.frontier_min_loops or self._implausible_now(members):
-                continue
-            ok = self._try_again(members, solve=True)
-            log.debug("ilv+: under the odometry level %.3g, cluster of %d loops (%d-%d) %s", looser, len(members), self._q[members].min(), self._q[members].max(), "accepted" if ok else "refused")
-
-    def _refused_on_a_bound(self) -> list[np.ndarray]:
-        """The refused loops of each cluster refused without a contest: no opponent and no
-        near-miss ratio (on a bound, :meth:`_implausible_now`, or never solved), of
-        ``frontier_min_loops`` loops or more; largest first."""
-        rejected = self._ids(Fate.REJECTED)
-        parts = []
-        for c in np.unique(self._cluster_of[rejected]).tolist():
-            if c not in self.clusters or self.clusters[c].opponents or c in self._near_misses:
-                continue
-            members = self.clusters[c].members[self._fate[self.clusters[c].members] == Fate.REJECTED]
-            if len(members) >= self.plus.frontier_min_loops:
-                parts.append(members)
-        return sorted(parts, key=lambda m: (-len(m), int(m[0])))
 
     def _fit_loop_shape(self) -> ShapeFit | None:
         """The loops' noise shape (:func:`~lcv_replay.verification.noise_scale.fit_loop_shape`)
