@@ -436,7 +436,7 @@ def test_a_slip_that_the_final_map_shows_switches_on_the_retry_across_slips(tmp_
 
     inputs = _world_inputs(tmp_path, "grid", 2000, 400, 13520)
     run, oracle = verify_inputs(inputs, "ilv+"), verify_inputs(inputs, "oracle").row
-    accepted = {run.result.constraints[i].candidate.pair for i in run.result.accepted_constraint_ids}
+    accepted = _accepted_pairs(run)
     assert {(1161, 649), (1373, 653), (851, 653)} <= accepted
     assert all(pair in inputs.true_pairs for pair in accepted)
     assert any("across odometry slips" in n and "(1161↔649)" in n for n in run.result.last_step.notes)
@@ -461,8 +461,8 @@ def test_parts_of_a_true_revisit_split_by_a_slip_are_judged_together_first(tmp_p
 
     inputs = _world_inputs(tmp_path, "ring", 2000, 400, 13503)
     run, oracle = verify_inputs(inputs, "ilv+"), verify_inputs(inputs, "oracle").row
-    accepted = {run.result.constraints[i].candidate.pair for i in run.result.accepted_constraint_ids}
-    revisit = {c.pair for c in inputs.candidates if 872 <= c.query_frame <= 912 and 16 <= c.match_frame <= 56 and c.pair in inputs.true_pairs}
+    accepted = _accepted_pairs(run)
+    revisit = _true_revisit(inputs, (872, 912), (16, 56))
     assert len(revisit) >= 20 and revisit <= accepted
     assert run.row.false_positives == 0 and run.row.ambiguous == 0
     assert run.row.recall >= 0.97
@@ -483,8 +483,8 @@ def test_a_true_revisit_that_fits_the_map_without_it_is_not_flagged_on_the_count
 
     inputs = _world_inputs(tmp_path, "grid", 2000, 400, 13559)
     run, oracle = verify_inputs(inputs, "ilv+"), verify_inputs(inputs, "oracle").row
-    accepted = {run.result.constraints[i].candidate.pair for i in run.result.accepted_constraint_ids}
-    revisit = {c.pair for c in inputs.candidates if 1193 <= c.query_frame <= 1209 and 297 <= c.match_frame <= 312 and c.pair in inputs.true_pairs}
+    accepted = _accepted_pairs(run)
+    revisit = _true_revisit(inputs, (1193, 1209), (297, 312))
     assert len(revisit) >= 14 and revisit <= accepted
     assert run.row.false_positives == 0 and run.row.ambiguous == 0
     assert run.row.recall >= 0.98
@@ -512,6 +512,17 @@ def _world_inputs(tmp_path, layout: str, poses: int, outliers: int, seed: int, g
 
     case = world_cases([layout], [poses], [noise], ["group"], [outliers], [seed], group_size=group_size)[0]
     return load_inputs(build_case_log(case, Path("/nonexistent"), tmp_path).path)
+
+
+def _accepted_pairs(run) -> set[tuple[int, int]]:
+    """The ``(query, match)`` pairs that ``run`` (``bench verify``'s) accepted."""
+    return {run.result.constraints[i].candidate.pair for i in run.result.accepted_constraint_ids}
+
+
+def _true_revisit(inputs, queries: tuple[int, int], matches: tuple[int, int]) -> set[tuple[int, int]]:
+    """The true candidate pairs of ``inputs`` with a query frame in ``queries`` and a match frame
+    in ``matches`` (both inclusive)."""
+    return {c.pair for c in inputs.candidates if queries[0] <= c.query_frame <= queries[1] and matches[0] <= c.match_frame <= matches[1] and c.pair in inputs.true_pairs}
 
 
 def _world_runs(tmp_path, layout: str, poses: int, outliers: int, seed: int, methods=("ilv+",), group_size: int = 10, noise: str = "heavy"):
