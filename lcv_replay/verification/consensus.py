@@ -1964,7 +1964,9 @@ class ConsensusVerifier(WindowedVerifier):
     def _judge_on_count(self, members: np.ndarray, held: np.ndarray, base: "pose_graph.PoseGraphSolution", waiting: np.ndarray, *, held_drop: bool = False) -> tuple[Fate, str, np.ndarray, "pose_graph.PoseGraphSolution"] | None:
         """:meth:`_rejudge_on_count`'s rule for accepted ``members`` of the map of the ``held``
         loops, solved as ``base``: ``None`` where they stay, else ``(fate, note, the held loops
-        without them, their solution)``.
+        without them, their solution)``. With ``held_drop`` (a lone revisit whose leave-out
+        statistic is under its cluster gate, :data:`LONE_LEFT_OUT_FRACTION`) they stay unless,
+        left out, the chi-square falls by their cluster gate or more.
 
         The hypothesis without them is credited with the loops they may have displaced: those of
         ``waiting`` (refused, or screened out) in their stretches (a query or match frame within a
