@@ -1038,7 +1038,8 @@ def test_a_fresh_heavy_tailed_ring_of_the_thirty_third_stop_with_false_loops(tmp
 
     inputs = _world_inputs(tmp_path, "ring", 2000, 400, 13609, group_size=20)
     group = {c.pair for c in inputs.candidates if 1923 <= c.query_frame <= 1942 and 1536 <= c.match_frame <= 1555}
-    assert len(group) == 20 and not group & inputs.true_pairs
+    if len(group) != 20 or group & inputs.true_pairs:  # the world itself changed: fail, do not count as the known failure
+        pytest.fail(f"ring s13609 no longer holds the false group of 20 at 1923-1942 to 1536-1555 ({len(group)} pairs)")
     run = verify_inputs(inputs, "ilv+")
     assert not _accepted_pairs(run) & group
     assert run.row.false_positives == 0
