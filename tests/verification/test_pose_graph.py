@@ -364,6 +364,47 @@ def test_a_joint_marginal_queried_earlier_bounds_the_current_one_while_the_graph
     assert IncrementalGraph(ODOM_INFORMATION).epoch not in (epoch, graph.epoch)
 
 
+def test_covariances_from_a_fresh_elimination_equal_isam2s_and_serve_only_the_version_they_were_built_at():
+    """Once iSAM2's covariance queries at one version of the graph have taken longer than a
+    fresh elimination of the same linear system took (here: set to no time at all), the
+    queries at that version are answered by GTSAM ``Marginals`` of the graph's factors
+    linearised at iSAM2's linearisation point: the same numbers (joint and single marginals;
+    a removed loop, a change without relinearisation and a relinearised one included); the
+    next change brings the queries back to iSAM2."""
+    from lcv_replay.se2 import between as se2_between
+    from lcv_replay.verification.pose_graph import IncrementalGraph, LoopFactor
+
+    world = circle_world(frames_per_lap=200, laps=2.0, true_every=2, num_false=0, yaw_bias_rad=0.0002)
+    info = np.diag([100.0, 100.0, 10000.0])
+    rng = np.random.default_rng(5)
+
+    def loop(q, m=None):
+        m = q - 200 if m is None else m
+        z = se2.compose(se2_between(world.truth[m], world.truth[q]), rng.normal(0.0, [0.1, 0.1, 0.01]))
+        return LoopFactor(m, q, z, info)
+
+    graph = IncrementalGraph(ODOM_INFORMATION)
+    graph.extend(world.odom)
+    graph.update(add=[(q, loop(q)) for q in range(205, 400, 6)])
+    graph.update(add=[(1000, loop(390, 50))], relinearize=False)  # a false loop, far off: theta and the estimate part
+    graph.update(remove=[211])
+    frames = [3, 50, 120, 390]
+    wanted = [(graph.joint_marginal(frames), [graph.marginal_covariance(f) for f in frames])]
+    assert graph._covariance_source() is graph._isam
+    graph._elimination_s = 0.0  # a fresh elimination costs nothing: the queries above took longer
+    source = graph._covariance_source()
+    assert source is not graph._isam and isinstance(source, gtsam.Marginals)
+    fresh = graph.joint_marginal(frames), [graph.marginal_covariance(f) for f in frames]
+    scale = np.abs(wanted[0][0]).max()
+    np.testing.assert_allclose(fresh[0], wanted[0][0], rtol=0.0, atol=1e-8 * scale)
+    for a, b in zip(fresh[1], wanted[0][1]):
+        np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-8 * scale)
+    assert graph._covariance_source() is source  # built once per version
+    graph.update(remove=[1000])
+    assert graph._covariance_source() is graph._isam  # a new version: iSAM2 first again
+    np.testing.assert_allclose(graph.joint_marginal(frames)[:3, :3], graph.marginal_covariance(3), rtol=1e-9)
+
+
 def test_incremental_graph_relinearises_on_headings_and_positions_by_their_own_thresholds():
     """Given the headings, a planar pose graph is linear in the positions: a loop that stretches a
     straight chain of 50 frames by 15 cm is solved exactly by one step. Under the default
