@@ -1709,13 +1709,16 @@ class ConsensusVerifier(WindowedVerifier):
         return candidates[np.any(near, axis=1)]
 
     def _revisit_of(self, members: np.ndarray, accepted: np.ndarray) -> np.ndarray:
-        """``members`` and the ``accepted`` loops of the same revisit (:meth:`_near`, transitively)."""
+        """``members`` and the ``accepted`` loops of the same revisit (:meth:`_near`, transitively),
+        sorted. Each round tests only the loops added by the last one against those not yet
+        added (a loop near an earlier one was added when that one was new)."""
         revisit = np.unique(members)
-        while True:
-            grown = np.union1d(revisit, self._near(revisit, accepted))
-            if len(grown) == len(revisit):
-                return revisit
-            revisit = grown
+        new, rest = revisit, np.setdiff1d(accepted, revisit)
+        while len(new) and len(rest):
+            new = self._near(new, rest)
+            revisit = np.union1d(revisit, new)
+            rest = np.setdiff1d(rest, new, assume_unique=True)
+        return revisit
 
     def _contest_free_end_holds(self) -> list[str]:
         """At the end of the log, contest each free-end hold that is still accepted against its

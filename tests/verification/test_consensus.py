@@ -207,6 +207,33 @@ def test_the_audit_reuses_earlier_marginals_for_its_passes_and_queries_current_o
     assert verifier._fate[c] != Fate.ACCEPTED and c not in verifier.graph.loop_ids
 
 
+def test_the_revisit_of_a_loop_is_the_transitive_closure_of_nearness():
+    """``_revisit_of`` grows a set of loops by the accepted loops near any of them (both ends
+    within a cluster span), round by round, testing only what the last round added: the same set
+    as the closure computed by brute force, on random loops that chain across several spans."""
+    verifier = make_verifier("ilv+", CONFIG, odometry_information=ODOM_INFORMATION)
+    span = verifier.plus.cluster_span_frames
+    rng = np.random.default_rng(7)
+    chained = 0  # draws whose closure took three rounds or more
+    for _ in range(30):
+        n = 120
+        verifier._q = np.sort(rng.integers(0, 40 * span, n))
+        verifier._m = np.clip(verifier._q // 3 + rng.integers(-span, span, n), 0, None)
+        accepted = np.sort(rng.choice(n, 90, replace=False))
+        members = rng.choice(n, 2, replace=False)
+        near = (np.abs(verifier._q[:, None] - verifier._q[None, :]) <= span) & (np.abs(verifier._m[:, None] - verifier._m[None, :]) <= span)
+        closure, rounds = set(members.tolist()), 0
+        while True:
+            grown = closure | {int(a) for a in accepted if any(near[a, b] for b in closure)}
+            if grown == closure:
+                break
+            closure, rounds = grown, rounds + 1
+        chained += rounds >= 3
+        revisit = verifier._revisit_of(members, accepted)
+        assert revisit.tolist() == sorted(closure)
+    assert chained >= 10
+
+
 def test_no_hypothesis_is_built_largest_first_where_every_refused_part_is_proven_implausible(monkeypatch):
     """At the end of the log the hypothesis built largest first tries the refused parts that its
     graph does not prove implausible; where none is left, it could hold only the working
