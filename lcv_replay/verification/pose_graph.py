@@ -612,7 +612,7 @@ class IncrementalGraph:
         taken to reach it. On that ring the covariance queries took 11 s of a 25 s run before,
         1 s now. On grouped city10000 the tree stays lean, a fresh elimination costs 0.1 to
         0.5 s and saves little: four times its cost (rather than once) keeps the queries there
-        with iSAM2 but at 3 or 4 versions (18 at once)."""
+        with iSAM2 but at 4 versions (18 with once)."""
         key = (self.epoch, self.version)
         if self._queried[0] != key:
             self._queried, self._batch_marginals = (key, 0.0), None
