@@ -23,12 +23,11 @@ the odometry chain in :mod:`lcv_replay.verification.measurements`) lives outside
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import logging
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Iterator, Literal, NamedTuple, Sequence
+from typing import TYPE_CHECKING, Callable, Literal, NamedTuple, Sequence, TypeVar
 
 import numpy as np
 
@@ -49,6 +48,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from lcv_replay.verification.base import Constraint
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 #: Standard deviation of the prior that fixes frame 0 (gauge freedom), metres and radians.
 PRIOR_SIGMA = 1e-6
@@ -626,20 +627,20 @@ class IncrementalGraph:
         try:
             theta = self._isam.getLinearizationPoint()
             marginals = gtsam.Marginals(self._isam.getFactorsUnsafe().linearize(theta), theta)
-        except RuntimeError as exc:  # iSAM2 answers (or raises) as before
+        except RuntimeError as exc:  # iSAM2 answers (or raises) as before, for the rest of this version
             log.debug("pose graph: a fresh elimination for covariances failed (%s)", _first_line(exc))
-            self._queried = (key, -np.inf)
+            self._queried = (key, -np.inf)  # no time spent at it reaches the threshold again
             return self._isam
         self._elimination_s = time.perf_counter() - start
         self._batch_marginals = marginals
         return marginals
 
-    @contextlib.contextmanager
-    def _timed(self, source) -> Iterator[None]:
-        """Count the time of a query answered by iSAM2 (see :meth:`_covariance_source`)."""
+    def _ask_covariances(self, ask: Callable[[object], T]) -> T:
+        """``ask(source)`` of :meth:`_covariance_source`, counting the time of what iSAM2 answers."""
+        source = self._covariance_source()
         start = time.perf_counter()
         try:
-            yield
+            return ask(source)
         finally:
             if source is self._isam:
                 key, spent = self._queried
@@ -649,10 +650,8 @@ class IncrementalGraph:
         """``(3, 3)`` marginal covariance of frame ``frame`` (right perturbation at its estimate),
         from iSAM2's Bayes tree (cheap for recent frames, near the root) or a fresh elimination
         of the same system (:meth:`_covariance_source`)."""
-        source = self._covariance_source()
         try:
-            with self._timed(source):
-                return np.asarray(source.marginalCovariance(int(frame)), dtype=np.float64)
+            return np.asarray(self._ask_covariances(lambda source: source.marginalCovariance(int(frame))), dtype=np.float64)
         except RuntimeError as exc:
             raise OptimisationFailed(f"marginal covariance of frame {frame} failed: {_first_line(exc)}") from exc
 
@@ -675,10 +674,8 @@ class IncrementalGraph:
         import gtsam
 
         frames = [int(f) for f in frames]
-        source = self._covariance_source()
         try:
-            with self._timed(source):
-                joint = source.jointMarginalCovariance(gtsam.KeyVector(frames))
+            joint = self._ask_covariances(lambda source: source.jointMarginalCovariance(gtsam.KeyVector(frames)))
             return np.block([[joint.at(a, b) for b in frames] for a in frames])
         except RuntimeError as exc:
             raise OptimisationFailed(f"joint marginal of frames {frames[:4]}{' …' if len(frames) > 4 else ''} failed: {_first_line(exc)}") from exc

@@ -389,15 +389,15 @@ def test_covariances_from_a_fresh_elimination_equal_isam2s_and_serve_only_the_ve
     graph.update(add=[(1000, loop(390, 50))], relinearize=False)  # a false loop, far off: theta and the estimate part
     graph.update(remove=[211])
     frames = [3, 50, 120, 390]
-    wanted = [(graph.joint_marginal(frames), [graph.marginal_covariance(f) for f in frames])]
+    wanted_joint, wanted_singles = graph.joint_marginal(frames), [graph.marginal_covariance(f) for f in frames]
     assert graph._covariance_source() is graph._isam
     graph._elimination_s = 0.0  # a fresh elimination costs nothing: the queries above took longer
     source = graph._covariance_source()
     assert source is not graph._isam and isinstance(source, gtsam.Marginals)
-    fresh = graph.joint_marginal(frames), [graph.marginal_covariance(f) for f in frames]
-    scale = np.abs(wanted[0][0]).max()
-    np.testing.assert_allclose(fresh[0], wanted[0][0], rtol=0.0, atol=1e-8 * scale)
-    for a, b in zip(fresh[1], wanted[0][1]):
+    fresh_joint, fresh_singles = graph.joint_marginal(frames), [graph.marginal_covariance(f) for f in frames]
+    scale = np.abs(wanted_joint).max()
+    np.testing.assert_allclose(fresh_joint, wanted_joint, rtol=0.0, atol=1e-8 * scale)
+    for a, b in zip(fresh_singles, wanted_singles):
         np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-8 * scale)
     assert graph._covariance_source() is source  # built once per version
     graph.update(remove=[1000])
