@@ -2,7 +2,16 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+
+if "PYTEST_XDIST_WORKER_COUNT" in os.environ:  # a worker of `-n N`, before numpy loads its BLAS
+    from lcv_replay.fleet.engine import thread_env
+
+    # N workers share the cores, so each caps its native thread pools as a fleet task does: with
+    # OpenBLAS's default of a thread per core, two workers on two cores took 710-796 s for the
+    # suite; capped, 593 s (same machine, one after the other).
+    os.environ.update(thread_env(max(1, (os.cpu_count() or 1) // int(os.environ["PYTEST_XDIST_WORKER_COUNT"]))))
 
 import pytest
 
