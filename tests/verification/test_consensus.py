@@ -1057,8 +1057,11 @@ def test_a_fresh_heavy_tailed_ring_of_the_thirty_third_stop_with_false_loops(tmp
     takes the free end on the count, and at the end of the log the revisit's loops are judged in
     the map it bent: 20 false loops, recall 0.763, ATE 9.30 m (the oracle's 0.709; GNC-TLS and
     DCS none, recall 0.851). Verifying the released loops again in the same window fixes it
-    (none, 0.988, 0.673 m) but sent grid s13584 down another path to 13 false loops, so it was
-    not kept.
+    (none, 0.988, 0.673 m) but sent grid s13584 down another path to 13 false loops; with each
+    cluster that joins the relieved map at the end judged again too, s13584 has none, but ring
+    s9804 (groups of 20) takes 20 and ring s9903 9 (on s9804 a false group a frame off a true
+    revisit gets its turn in the window where the revisit's first cluster split, and joins on
+    the count), so neither was kept.
 
     Strict: when a change fixes it, this test fails until the mark is removed."""
     from lcv_replay.bench.verify import verify_inputs
