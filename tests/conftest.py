@@ -9,8 +9,8 @@ if "PYTEST_XDIST_WORKER_COUNT" in os.environ:  # a worker of `-n N`, before nump
     from lcv_replay.fleet.engine import thread_env
 
     # N workers share the cores, so each caps its native thread pools as a fleet task does: with
-    # OpenBLAS's default of a thread per core, two workers on two cores took 710-796 s for the
-    # suite; capped, 593 s (same machine, one after the other).
+    # OpenBLAS's default of a thread per core, two workers on two cores took 703 s for the suite;
+    # capped, 593 s (one run after the other; docs/verification-bench.md, thirty-fifth stop).
     os.environ.update(thread_env(max(1, (os.cpu_count() or 1) // int(os.environ["PYTEST_XDIST_WORKER_COUNT"]))))
 
 import pytest
