@@ -149,7 +149,7 @@ from lcv_replay.verification.consistency import Cycles, connected_labels, left_o
 from lcv_replay.verification.incremental import WindowedVerifier
 from lcv_replay.verification.noise_scale import LevelFit, NoiseFit, ShapeFit, fit_loop_shape, fit_noise_quantiles, fit_odometry_level, shaped_covariance, student_t_costs
 from lcv_replay.verification.measurements import OdometryChain, odometry_between
-from lcv_replay.verification.pose_graph import IncrementalGraph, LoopFactor, OptimisationFailed
+from lcv_replay.verification.pose_graph import GraphCheckpoint, IncrementalGraph, LoopFactor, OptimisationFailed
 
 log = logging.getLogger(__name__)
 
@@ -279,7 +279,7 @@ class ConsensusVerifier(WindowedVerifier):
         self._stepped_frames = 0
         self._hypothesis_id = 0  # id of the working hypothesis (changes when its loop set changes)
         self._next_hypothesis_id = 1
-        self._chi2_cache: tuple[int, float] | None = None
+        self._chi2_cache: tuple[tuple[int, int], float] | None = None
         self._steps_cache: tuple | None = None  # see _odometry_steps
         self._loops_cache: tuple | None = None  # see _graph_loops_chi2
         self._odometry_chi2_cache: list[tuple[np.ndarray, int, np.ndarray]] = []  # see _odometry_chi2
@@ -512,7 +512,7 @@ class ConsensusVerifier(WindowedVerifier):
 
     def _chi2_total(self) -> float:
         """Chi-square of the working hypothesis at its solution (odometry and accepted loops)."""
-        key = self._updates()
+        key = (self.graph.epoch, self.graph.version)  # unique across graphs, moved by every change
         if self._chi2_cache is not None and self._chi2_cache[0] == key:
             return self._chi2_cache[1]
         x = self.graph.estimate()
@@ -965,6 +965,7 @@ class ConsensusVerifier(WindowedVerifier):
                         group = [c for c in group if c not in worst]
                         aside += worst
                         continue
+                    stepped, stepped_in = self.graph.checkpoint(), in_graph
                     self.graph.update(relinearize=True)
                     relinearized = True
                 x = self.graph.estimate()
@@ -981,8 +982,10 @@ class ConsensusVerifier(WindowedVerifier):
                 in_graph = in_graph[~np.isin(in_graph, out)]
                 group = [c for c in group if c not in worst]
                 aside += worst
-            if len(in_graph):
-                exact = not relinearized and self.graph.factorization == factorization
+            if relinearized:
+                self._undo(stepped, remove=stepped_in)
+            elif len(in_graph):
+                exact = self.graph.factorization == factorization
                 self._apply(remove=in_graph, relinearize=not exact)  # unrelinearised: undone exactly
                 if not exact:
                     self._restore(before, x_before)
@@ -1037,6 +1040,7 @@ class ConsensusVerifier(WindowedVerifier):
                 opponents = self._opponents(x_before, x_step, exclude=members)
                 self._apply(remove=members, relinearize=False)
                 return False, opponents
+            stepped = self.graph.checkpoint()  # a refusal comes back to the one step, then undoes it exactly
             self.graph.update(relinearize=True)
         except OptimisationFailed as exc:
             log.warning("ilv+: loops %s not verified (%s)", members[:3].tolist(), exc.message)
@@ -1057,9 +1061,22 @@ class ConsensusVerifier(WindowedVerifier):
         self.last_fit = residual < self.gate_chi2
         opponents = self._opponents(x_before, x, exclude=members)
         self._near_misses[int(self._cluster_of[members[0]])] = (after - before) / gate_k
-        self._apply(remove=members)
-        self._restore(before, x_before)
+        self._undo(stepped, remove=members)
         return False, opponents
+
+    def _undo(self, stepped: GraphCheckpoint, *, add: Sequence[int] = (), remove: Sequence[int] = ()) -> None:
+        """Undo a change that was solved and refused: back to ``stepped``, its one Gauss-Newton
+        step (:meth:`~.pose_graph.IncrementalGraph.checkpoint` before the solve), then the change
+        taken back at the same linearisation point (``add`` what it removed, ``remove`` what it
+        added), which leaves exactly the solution before it. Until the thirty-sixth stop the loops
+        were taken out of the solved graph and iSAM2 relinearised back (:meth:`_restore` after),
+        a second solve as costly as the first."""
+        try:
+            self.graph.rollback(stepped)
+            self._apply(add=add, remove=remove, relinearize=False)
+        except OptimisationFailed as exc:
+            log.warning("ilv+: a refused change not undone (%s); rebuilding the hypothesis", exc.message)
+            self._rebuild()
 
     #: After an undo, a chi-square higher than before by more than this (or by this fraction of
     #: it, on a large graph) means that the solution did not come back to the one before.
@@ -1405,6 +1422,7 @@ class ConsensusVerifier(WindowedVerifier):
                 self._fate[outside] = Fate.REJECTED
                 contests.append(_Contest(self._new_hypothesis_id(), tuple(int(i) for i in inside), tuple(int(i) for i in outside), float(step), f"lost: J higher by {step:.1f} after one step"))
                 return "lost"
+            stepped = self.graph.checkpoint()
             self.graph.update(relinearize=True)
         except OptimisationFailed as exc:
             log.warning("ilv+: contest not decided (%s)", exc.message)
@@ -1432,8 +1450,7 @@ class ConsensusVerifier(WindowedVerifier):
             outcome = f"won: J lower by {-delta:.1f}"
             self._forget_ambiguous(incumbent | challenger)
         elif (delta > margin or searched) and not self._cut_short(challenger, delta, after - before):
-            self._apply(add=inside, remove=outside)
-            self._restore(before, x_before)
+            self._undo(stepped, add=inside, remove=outside)
             self._fate[outside] = Fate.REJECTED
             outcome = f"lost: J higher by {delta:.1f}" if delta > margin else f"lost: J within {abs(delta):.1f} (a search: the working hypothesis stays)"
         else:

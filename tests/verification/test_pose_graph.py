@@ -309,6 +309,55 @@ def test_the_incremental_estimate_is_isam2s_own_after_every_kind_of_change():
     check()
 
 
+def test_a_rollback_puts_back_the_state_of_its_checkpoint_exactly_and_each_checkpoint_serves_once():
+    """A false loop solved into the graph and refused: :meth:`IncrementalGraph.rollback` brings back
+    the estimate, the loops, covariances and iSAM2's own estimate bit for bit, where taking the
+    loop out and relinearising lands only near the solution before it. The versions of the undone
+    branch no longer count as held (:meth:`holds_loops_of`); the graph goes on from there as one
+    that never saw the loop."""
+    from lcv_replay.se2 import between as se2_between
+    from lcv_replay.verification.pose_graph import IncrementalGraph, LoopFactor
+
+    world = circle_world(num_false=0)
+    info = np.diag([25.0, 25.0, 400.0])
+    factors = [LoopFactor(c.match_frame, c.query_frame, se2_between(world.truth[c.match_frame], world.truth[c.query_frame]), info) for c in world.true_candidates[::3]]
+
+    def build():
+        graph = IncrementalGraph(ODOM_INFORMATION)
+        graph.extend(world.odom)
+        graph.update(add=list(enumerate(factors[:-1])))
+        return graph
+
+    graph, twin = build(), build()
+    before, version = graph.estimate().copy(), graph.version
+    sigma = graph.relative_covariance(10, 390)
+    point = graph.checkpoint()
+    wrong = LoopFactor(10, 390, np.array([0.0, 0.0, 0.0]), info)  # opposite sides of the circle
+    graph.update(add=[(99, wrong)], relinearize=True)
+    assert np.max(np.abs(graph.estimate() - before)) > 1.0
+    branch = graph.version
+    graph.rollback(point)
+    np.testing.assert_array_equal(graph.estimate(), before)
+    np.testing.assert_array_equal(np.asarray(gtsam.utilities.extractPose2(graph._isam.calculateEstimate()))[:, :2], np.asarray(gtsam.utilities.extractPose2(twin._isam.calculateEstimate()))[:, :2])
+    np.testing.assert_array_equal(graph.relative_covariance(10, 390), sigma)
+    assert graph.loop_ids == frozenset(range(len(factors) - 1)) and graph.version > branch
+    assert graph.holds_loops_of(version) and not graph.holds_loops_of(branch)
+    with pytest.raises(VerificationError, match="serves one rollback"):
+        graph.rollback(point)
+    twin.update(add=[(99, wrong)], relinearize=True)
+    twin.update(remove=[99], relinearize=True)  # the undo by removal: near, not back
+    assert 0.0 < np.max(np.abs(twin.estimate() - before))
+    graph.update(add=[(len(factors) - 1, factors[-1])])  # and it goes on as a graph that never held the loop
+    fresh = IncrementalGraph(ODOM_INFORMATION)
+    fresh.extend(world.odom)
+    fresh.update(add=list(enumerate(factors)))
+    np.testing.assert_allclose(graph.estimate(), fresh.estimate(), atol=2e-3)  # both converged to the threshold
+    other = graph.checkpoint()
+    graph.restart(graph.estimate())
+    with pytest.raises(VerificationError, match="epoch"):
+        graph.rollback(other)
+
+
 def test_a_joint_marginal_queried_earlier_bounds_the_current_one_while_the_graph_holds_more_loops():
     """``ilv+``'s audit reuses a revisit's joint marginal queried at an earlier window, where the
     graph still holds every loop it held then: more frames and loops only add information, so
