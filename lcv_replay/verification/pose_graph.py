@@ -358,12 +358,13 @@ class IncrementalGraph:
 
     Attributes:
         epoch: the serial number of this graph's linearisation history: new at construction and
-            at each :meth:`restart`. Within one epoch, a graph that holds every loop it held at
+            at each :meth:`restart` (a :meth:`rollback` returns to a state of the same history
+            and keeps it). Within one epoch, a graph that holds every loop it held at
             an earlier :attr:`version` (:meth:`holds_loops_of`), and maybe more, gives covariances
             of relative poses no larger than it gave then, up to the relinearisation of the
             poses that moved (the frames' own marginals, in the tangent space at each pose, can
             turn with them).
-        version: bumped by each update and restart.
+        version: bumped by each update, restart and rollback.
     """
 
     def __init__(
