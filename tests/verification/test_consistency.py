@@ -155,3 +155,52 @@ def test_neighbour_pairs_and_connected_labels():
     assert pairs.tolist() == [[0, 1], [0, 2], [1, 2], [1, 4], [2, 4]]  # 40 and 300 are far in match frames
     assert connected_labels(6, pairs).tolist() == [0, 0, 0, 1, 0, 2]
     assert connected_labels(3, np.zeros((0, 2), dtype=np.int64)).tolist() == [0, 1, 2]
+
+
+
+def _ring_revisit(rng, *, queries, false_run=(), slips=()):
+    """Two laps of a ring of 100 frames 1 m apart, and loops of the second lap to the first:
+    true ones (measured with 5 cm noise) for ``queries``, and for ``false_run`` loops that claim
+    the frame two along the road with the true one's measurement (a group two metres off,
+    consistent among itself). ``slips``: ``(frame, metres)``, the odometry slips sideways from there."""
+    from lcv_replay.se2 import between as se2_between, compose as se2_compose
+    from lcv_replay.verification.measurements import OdometryChain
+
+    angle = np.arange(200) * (2 * np.pi / 100)
+    radius = 100 / (2 * np.pi)
+    truth = np.column_stack([radius * np.sin(angle), radius * (1 - np.cos(angle)), angle])
+    odometry = truth.copy()
+    for frame, sideways_m in slips:
+        odometry[frame:] = se2_compose(np.array([0.0, sideways_m, 0.0]), odometry[frame:])  # in the world frame
+    chain = OdometryChain(np.diag([100.0, 100.0, 1000.0]))
+    chain.extend(odometry)
+    loops = [(q - 100, q) for q in queries] + [(q - 100 + 2, q) for q in false_run]
+    measured = [se2_between(truth[q - 100], truth[q]) + rng.normal(0, [0.05, 0.05, 0.005]) for _, q in loops]
+    match, query = (np.array(v) for v in zip(*loops))
+    return chain, match, query, np.array(measured)
+
+
+def test_a_run_off_the_road_between_two_agreeing_flanks_of_its_revisit_is_the_odd_one_out():
+    """A false group two frames along the road inside a true revisit of the same stretch (ring
+    s13587's case) is found; not with a short flank or a seam on one side only, and not in a true
+    revisit parted by odometry slips (once, or twice so that its flanks disagree across)."""
+    from lcv_replay.verification.consistency import seamed_runs
+
+    rng = np.random.default_rng(3)
+    seam = dict(span_frames=4, gap_factor=4.0, min_flank_loops=3)
+    chain, m, q, z = _ring_revisit(rng, queries=[*range(130, 140), *range(148, 161)], false_run=range(140, 148))
+    runs = seamed_runs(chain, m, q, z, **seam)
+    assert [sorted(q[run].tolist()) for run in runs] == [list(range(140, 148))]
+    assert np.all(m[runs[0]] == q[runs[0]] - 98)
+
+    chain, m, q, z = _ring_revisit(rng, queries=[138, 139, *range(148, 161)], false_run=range(140, 148))
+    assert seamed_runs(chain, m, q, z, **seam) == []  # a flank of 2 loops
+    chain, m, q, z = _ring_revisit(rng, queries=range(130, 140), false_run=range(140, 148))
+    assert seamed_runs(chain, m, q, z, **seam) == []  # nothing after it
+    chain, m, q, z = _ring_revisit(rng, queries=range(130, 161), slips=[(145, 1.5)])
+    assert seamed_runs(chain, m, q, z, **dict(seam, min_flank_loops=1)) == []  # seamed once
+    chain, m, q, z = _ring_revisit(rng, queries=range(130, 161), slips=[(141, 1.5), (148, 1.5)])
+    assert seamed_runs(chain, m, q, z, **seam) == []  # seamed twice, but the flanks disagree across
+    # the limit: two slips that cancel seam a true run on both sides, and its flanks agree across
+    chain, m, q, z = _ring_revisit(rng, queries=range(130, 161), slips=[(141, 1.5), (148, -1.5)])
+    assert [sorted(q[run].tolist()) for run in seamed_runs(chain, m, q, z, **seam)] == [list(range(141, 148))]
