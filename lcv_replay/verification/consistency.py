@@ -367,74 +367,28 @@ def connected_labels(count: int, edges: np.ndarray) -> np.ndarray:
     return labels.astype(np.int64)
 
 
-def seamed_runs(
-    chain,
-    match: np.ndarray,
-    query: np.ndarray,
-    measured: np.ndarray,
-    *,
-    span_frames: int,
-    gap_factor: float,
-    min_flank_loops: int,
-    min_cycles: int = 20,
-) -> list[np.ndarray]:
-    """Runs of loops that disagree with the loops on both sides of them along one revisit, where
-    those agree with each other across the run: a group of loops a frame or two off the road that
-    the loops beside it follow (the odd one out).
+def cycle_gaps(chain, match: np.ndarray, query: np.ndarray, measured: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """``(P,)`` the translation error, in metres, of the short cycle (:class:`Cycles`) of each
+    index pair of loops in ``pairs`` ``(P, 2)``."""
+    i, j = pairs[:, 0], pairs[:, 1]
+    error = Cycles(chain, (match[i], match[j]), (query[i], query[j]), (measured[i], measured[j])).error
+    return np.hypot(error[:, 0], error[:, 1])
 
-    The loops are taken pairwise over their short cycles (:class:`Cycles`, pairs from
-    :func:`neighbour_pairs` within ``span_frames``), and each cycle's gap is the length of its
-    translation error, in metres. The scale comes from the loops themselves, not from their
-    declared covariances: a cycle agrees when its gap is below ``gap_factor`` times the median gap
-    of all of them (the declared covariances can be far looser than the loops' real noise, so
-    that a group two metres off the road passes the pairwise gate). The loops joined by agreeing
-    cycles form components; a component ``C`` is returned where
 
-    * a cycle joins it with a component ``A`` before it (the loop of that cycle nearest ``C`` has
-      a query frame before all of ``C``'s) and one with a component ``B`` after it, and no cycle
-      joins it with them agrees (they are separate components);
-    * ``A`` and ``B`` hold ``min_flank_loops`` loops or more each, and more than ``C`` together;
-    * the cycle of ``A``'s and ``B``'s loops nearest ``C``, across it, agrees (gap below the same
-      bound): an odometry slip inside ``C``'s stretch would part them too.
-
-    Returns index arrays into the given loops, one per run; none where fewer than ``min_cycles``
-    cycles are found (no scale). Cost: one vectorised cycle per pair, ``O(K log K + P)``.
-
-    Args:
-        chain: the :class:`~lcv_replay.verification.measurements.OdometryChain` (its ``poses``).
-        match, query: ``(K,)`` frames of the loops.
-        measured: ``(K, 3)`` ``T_match_query``.
-    """
-    match = np.asarray(match, dtype=np.int64)
-    query = np.asarray(query, dtype=np.int64)
-    measured = np.asarray(measured, dtype=np.float64).reshape(-1, 3)
+def short_cycle_runs(
+    chain, match: np.ndarray, query: np.ndarray, measured: np.ndarray, *, span_frames: int, gap_factor: float, min_cycles: int = 20
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
+    """The loops joined in runs by their short cycles, on the scale of their own gaps: pairs
+    within ``span_frames`` (:func:`neighbour_pairs`) agree where their cycle's gap
+    (:func:`cycle_gaps`) is below ``gap_factor`` times the median gap of all of them. Returns
+    ``(labels, pairs, agree, bound)``: ``(K,)`` component labels (:func:`connected_labels`),
+    the ``(P, 2)`` pairs, ``(P,)`` bool, and the bound in metres; ``None`` where fewer than
+    ``min_cycles`` pairs give no scale."""
     pairs = neighbour_pairs(match, query, span_frames)
     if len(pairs) < min_cycles:
-        return []
-
-    def gaps(i: np.ndarray, j: np.ndarray) -> np.ndarray:
-        error = Cycles(chain, (match[i], match[j]), (query[i], query[j]), (measured[i], measured[j])).error
-        return np.hypot(error[:, 0], error[:, 1])
-
-    gap = gaps(pairs[:, 0], pairs[:, 1])
+        return None
+    gap = cycle_gaps(chain, match, query, measured, pairs)
     bound = gap_factor * float(np.median(gap))
     agree = gap < bound
-    labels = connected_labels(len(match), pairs[agree])
-    seams = pairs[~agree]
-    seams = seams[labels[seams[:, 0]] != labels[seams[:, 1]]]
-    runs = []
-    for label in np.unique(labels[seams]).tolist():
-        run = np.flatnonzero(labels == label)
-        mine = labels[seams] == label
-        touching = mine.any(axis=1)
-        others = seams[touching][~mine[touching]]  # the other loop of each seam of the run
-        before, after = others[query[others] < query[run].min()], others[query[others] > query[run].max()]
-        if len(before) == 0 or len(after) == 0:
-            continue
-        a, b = before[np.argmax(query[before])], after[np.argmin(query[after])]
-        flanks = np.flatnonzero((labels == labels[a]) | (labels == labels[b]))
-        if min(np.sum(labels == labels[a]), np.sum(labels == labels[b])) < min_flank_loops or len(flanks) <= len(run):
-            continue
-        if gaps(np.array([a]), np.array([b]))[0] < bound:
-            runs.append(run)
-    return runs
+    return connected_labels(len(match), pairs[agree]), pairs, agree, bound
+

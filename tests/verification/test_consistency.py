@@ -180,27 +180,31 @@ def _ring_revisit(rng, *, queries, false_run=(), slips=()):
     return chain, match, query, np.array(measured)
 
 
-def test_a_run_off_the_road_between_two_agreeing_flanks_of_its_revisit_is_the_odd_one_out():
-    """A false group two frames along the road inside a true revisit of the same stretch (ring
-    s13587's case) is found; not with a short flank or a seam on one side only, and not in a true
-    revisit parted by odometry slips (once, or twice so that its flanks disagree across)."""
-    from lcv_replay.verification.consistency import seamed_runs
+def test_short_cycle_runs_part_a_group_two_frames_off_the_road_from_the_revisit_around_it():
+    """On the loops' own scale a false group two frames along the road inside a true revisit of
+    the same stretch (ring s13587's case) is a run of its own, apart from the true loops on both
+    sides, which the declared loop noise would join with it; an odometry slip parts a true
+    revisit once; a loose bound joins everything."""
+    from lcv_replay.verification.consistency import short_cycle_runs
 
     rng = np.random.default_rng(3)
-    seam = dict(span_frames=4, gap_factor=4.0, min_flank_loops=3)
     chain, m, q, z = _ring_revisit(rng, queries=[*range(130, 140), *range(148, 161)], false_run=range(140, 148))
-    runs = seamed_runs(chain, m, q, z, **seam)
-    assert [sorted(q[run].tolist()) for run in runs] == [list(range(140, 148))]
-    assert np.all(m[runs[0]] == q[runs[0]] - 98)
+    labels, pairs, agree, bound = short_cycle_runs(chain, m, q, z, span_frames=4, gap_factor=4.0)
+    assert 0.1 < bound < 0.5  # four times the median gap of loops measured to 5 cm
+    runs = {tuple(sorted(q[labels == label].tolist())) for label in np.unique(labels)}
+    assert runs == {tuple(range(130, 140)), tuple(range(140, 148)), tuple(range(148, 161))}
+    assert np.all(m[np.isin(q, range(140, 148))] == np.arange(140, 148) - 98)
+    # under a declared loop noise of 2 m the group's cycles with the true loops pass a 3-dof gate
+    from lcv_replay.verification.consistency import Cycles
 
-    chain, m, q, z = _ring_revisit(rng, queries=[138, 139, *range(148, 161)], false_run=range(140, 148))
-    assert seamed_runs(chain, m, q, z, **seam) == []  # a flank of 2 loops
-    chain, m, q, z = _ring_revisit(rng, queries=range(130, 140), false_run=range(140, 148))
-    assert seamed_runs(chain, m, q, z, **seam) == []  # nothing after it
+    across = pairs[~agree]
+    cycles = Cycles(chain, (m[across[:, 0]], m[across[:, 1]]), (q[across[:, 0]], q[across[:, 1]]), (z[across[:, 0]], z[across[:, 1]]))
+    loose = np.broadcast_to(np.diag([4.0, 4.0, 0.04]), (len(across), 3, 3))
+    assert len(across) > 0 and np.all(cycles.d2((loose, loose)) < 11.34)
+
     chain, m, q, z = _ring_revisit(rng, queries=range(130, 161), slips=[(145, 1.5)])
-    assert seamed_runs(chain, m, q, z, **dict(seam, min_flank_loops=1)) == []  # seamed once
-    chain, m, q, z = _ring_revisit(rng, queries=range(130, 161), slips=[(141, 1.5), (148, 1.5)])
-    assert seamed_runs(chain, m, q, z, **seam) == []  # seamed twice, but the flanks disagree across
-    # the limit: two slips that cancel seam a true run on both sides, and its flanks agree across
-    chain, m, q, z = _ring_revisit(rng, queries=range(130, 161), slips=[(141, 1.5), (148, -1.5)])
-    assert [sorted(q[run].tolist()) for run in seamed_runs(chain, m, q, z, **seam)] == [list(range(141, 148))]
+    labels, *_ = short_cycle_runs(chain, m, q, z, span_frames=4, gap_factor=4.0)
+    assert {tuple(sorted(q[labels == label].tolist())) for label in np.unique(labels)} == {tuple(range(130, 145)), tuple(range(145, 161))}
+    labels, *_ = short_cycle_runs(chain, m, q, z, span_frames=4, gap_factor=1e3)
+    assert len(np.unique(labels)) == 1
+    assert short_cycle_runs(chain, m[:5], q[:5], z[:5], span_frames=4, gap_factor=4.0) is None  # too few cycles for a scale
