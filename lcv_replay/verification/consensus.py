@@ -100,9 +100,9 @@ ambiguous rather than accepted. The runs of accepted loops (joined by their shor
 scale of their own scatter) that hold refused loops of their own query frames out, a few frames
 from theirs, are judged with them too (:meth:`ConsensusVerifier._displacing_runs`): a false group
 a frame or two off a true revisit of the same stretch, which the declared loop noise cannot tell
-from it. And a cluster that took the free end of the trajectory at a window, first in the order of the trials, is contested against the clusters then refused on a bound in the
-map it bent, all of them together, where they hold more loops
-(:meth:`ConsensusVerifier._contest_free_end_holds`). Past the last accepted loop, refused
+from it. And a cluster that took the free end of the trajectory at a window, first in the order
+of the trials, is contested against the clusters then refused on a bound in the map it bent, all
+of them together, where they hold more loops (:meth:`ConsensusVerifier._contest_free_end_holds`). Past the last accepted loop, refused
 revisits of two places or more that agree under heavy-tailed odometry join
 (:meth:`ConsensusVerifier._claim_free_end_across_slips`): after a slip there each was beyond a
 gate alone. Last, where the accepted clusters' cycles reject the declared shape of the loops'
@@ -125,8 +125,9 @@ the near ones takes them (city10000, grouped outliers: its two slow windows 3 an
 only what fits within half of the worst, and trying every set-aside cluster together again (each
 moved the slow windows elsewhere or cost recall). A change that was solved and then refused is
 undone from a copy of iSAM2 taken before its solve
-(:meth:`~lcv_replay.verification.pose_graph.IncrementalGraph.checkpoint`), not solved back. The per-window time is iSAM2 (updates about
-half of it, marginal queries a fifth, estimates a tenth on city10000), the rest numpy.
+(:meth:`~lcv_replay.verification.pose_graph.IncrementalGraph.checkpoint`), not solved back. The
+per-window time is iSAM2 (updates about half of it, marginal queries a fifth, estimates a tenth on
+city10000), the rest numpy.
 """
 
 from __future__ import annotations
@@ -840,12 +841,13 @@ class ConsensusVerifier(WindowedVerifier):
         judged in the map it bent: 20 false loops, recall 0.763, ATE 9.30 m (the oracle's 0.709).
         Now 131 of them form a cluster that is tried before the group: none, recall 0.988, 0.673 m.
 
-        Why large ones only, and once: every released cluster of 3 loops or more, tried again and
-        again as its trials failed, peeled a true revisit on ring s9903 a few loops at a time
-        (released 235, then 96, 92, 90, ... 71 loops of frames 1500-1694): 289 true loops ended
-        flagged, recall 0.988 -> 0.574; and on ring s9804 (groups of 20) a false group two frames
-        off a true revisit got its turn in the window where the revisit's cluster split, and joined
-        on the count (20 false loops)."""
+        Why once: tried again after each failure, the released clusters peeled a true revisit on
+        ring s9903 a few loops at a time (released 235 loops of frames 1500-1998, then 96, 92,
+        90, ... 71): 289 true loops ended flagged, recall 0.988 -> 0.574 (0.571 with 4 false
+        loops where only those of 20 loops or more were tried). Why large ones only: with every
+        released cluster of 3 loops or more tried, on ring s9804 (groups of 20) a false group two
+        frames off a true revisit got its turn in the window where the revisit's cluster split,
+        and joined on the count (20 false loops)."""
         clusters = self._form_clusters(released)
         large = [c for c in clusters if len(self._pending_members(c)) >= self.LONE_REVISIT_LOOPS]
         for c in clusters:

@@ -367,27 +367,21 @@ def connected_labels(count: int, edges: np.ndarray) -> np.ndarray:
     return labels.astype(np.int64)
 
 
-def cycle_gaps(chain, match: np.ndarray, query: np.ndarray, measured: np.ndarray, pairs: np.ndarray) -> np.ndarray:
-    """``(P,)`` the translation error, in metres, of the short cycle (:class:`Cycles`) of each
-    index pair of loops in ``pairs`` ``(P, 2)``."""
-    i, j = pairs[:, 0], pairs[:, 1]
-    error = Cycles(chain, (match[i], match[j]), (query[i], query[j]), (measured[i], measured[j])).error
-    return np.hypot(error[:, 0], error[:, 1])
-
-
 def short_cycle_runs(
     chain, match: np.ndarray, query: np.ndarray, measured: np.ndarray, *, span_frames: int, gap_factor: float, min_cycles: int = 20
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
     """The loops joined in runs by their short cycles, on the scale of their own gaps: pairs
-    within ``span_frames`` (:func:`neighbour_pairs`) agree where their cycle's gap
-    (:func:`cycle_gaps`) is below ``gap_factor`` times the median gap of all of them. Returns
-    ``(labels, pairs, agree, bound)``: ``(K,)`` component labels (:func:`connected_labels`),
-    the ``(P, 2)`` pairs, ``(P,)`` bool, and the bound in metres; ``None`` where fewer than
-    ``min_cycles`` pairs give no scale."""
+    within ``span_frames`` (:func:`neighbour_pairs`) agree where their cycle's gap (the length of
+    its translation error, :class:`Cycles`, in metres) is below ``gap_factor`` times the median
+    gap of all of them. Returns ``(labels, pairs, agree, bound)``: ``(K,)`` component labels
+    (:func:`connected_labels`), the ``(P, 2)`` pairs, ``(P,)`` bool, and the bound in metres;
+    ``None`` where fewer than ``min_cycles`` pairs give no scale."""
     pairs = neighbour_pairs(match, query, span_frames)
     if len(pairs) < min_cycles:
         return None
-    gap = cycle_gaps(chain, match, query, measured, pairs)
+    i, j = pairs[:, 0], pairs[:, 1]
+    error = Cycles(chain, (match[i], match[j]), (query[i], query[j]), (measured[i], measured[j])).error
+    gap = np.hypot(error[:, 0], error[:, 1])
     bound = gap_factor * float(np.median(gap))
     agree = gap < bound
     return connected_labels(len(match), pairs[agree]), pairs, agree, bound
