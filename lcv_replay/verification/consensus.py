@@ -2075,8 +2075,10 @@ class ConsensusVerifier(WindowedVerifier):
 
         Why: a false group can lie two frames along the road from the true revisit of the same
         stretch, join it in one cluster, and hold the revisit's loops of its query frames out.
-        Nothing else judged it again: it contradicts no accepted loop at the pairwise gate, and
-        it did not join on the count. On fresh heavy-tailed rings (groups of 10):
+        Nothing else judged it again: it did not join on the count, and
+        :meth:`_contradicting_parts_on_count` looks only where some cluster did, at the pairwise
+        gate, which its pairs with the true loops mostly pass. On fresh heavy-tailed rings (groups
+        of 10):
 
         * ring-2k-heavy-group-400-s13587: a group of 1255-1264 to 140-149, 8 of its loops
           accepted inside the true revisit of 1253-1272 to 140-159, whose short cycles with the
