@@ -157,7 +157,6 @@ def test_neighbour_pairs_and_connected_labels():
     assert connected_labels(3, np.zeros((0, 2), dtype=np.int64)).tolist() == [0, 1, 2]
 
 
-
 def _ring_revisit(rng, *, queries, false_run=(), slips=()):
     """Two laps of a ring of 100 frames 1 m apart, and loops of the second lap to the first:
     true ones (measured with 5 cm noise) for ``queries``, and for ``false_run`` loops that claim
@@ -185,7 +184,7 @@ def test_short_cycle_runs_part_a_group_two_frames_off_the_road_from_the_revisit_
     the same stretch (ring s13587's case) is a run of its own, apart from the true loops on both
     sides, which the declared loop noise would join with it; an odometry slip parts a true
     revisit once; a loose bound joins everything."""
-    from lcv_replay.verification.consistency import short_cycle_runs
+    from lcv_replay.verification.consistency import Cycles, short_cycle_runs
 
     rng = np.random.default_rng(3)
     chain, m, q, z = _ring_revisit(rng, queries=[*range(130, 140), *range(148, 161)], false_run=range(140, 148))
@@ -195,8 +194,6 @@ def test_short_cycle_runs_part_a_group_two_frames_off_the_road_from_the_revisit_
     assert runs == {tuple(range(130, 140)), tuple(range(140, 148)), tuple(range(148, 161))}
     assert np.all(m[np.isin(q, range(140, 148))] == np.arange(140, 148) - 98)
     # under a declared loop noise of 2 m the group's cycles with the true loops pass a 3-dof gate
-    from lcv_replay.verification.consistency import Cycles
-
     across = pairs[~agree]
     cycles = Cycles(chain, (m[across[:, 0]], m[across[:, 1]]), (q[across[:, 0]], q[across[:, 1]]), (z[across[:, 0]], z[across[:, 1]]))
     loose = np.broadcast_to(np.diag([4.0, 4.0, 0.04]), (len(across), 3, 3))
