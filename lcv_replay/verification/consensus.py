@@ -102,8 +102,9 @@ from theirs, are judged with them too (:meth:`ConsensusVerifier._displacing_runs
 a frame or two off a true revisit of the same stretch, which the declared loop noise cannot tell
 from it. And a cluster that took the free end of the trajectory at a window, first in the order
 of the trials, is contested against the clusters then refused on a bound in the map it bent, all
-of them together, where they hold more loops (:meth:`ConsensusVerifier._contest_free_end_holds`). Past the last accepted loop, refused
-revisits of two places or more that agree under heavy-tailed odometry join
+of them together, where they hold more loops (:meth:`ConsensusVerifier._contest_free_end_holds`).
+Past the last accepted loop, refused revisits of two places or more that agree under heavy-tailed
+odometry join
 (:meth:`ConsensusVerifier._claim_free_end_across_slips`): after a slip there each was beyond a
 gate alone. Last, where the accepted clusters' cycles reject the declared shape of the loops'
 noise axis by axis (x, y and yaw off by different factors, which one scale cannot fit), the refused
@@ -2056,7 +2057,41 @@ class ConsensusVerifier(WindowedVerifier):
                 log.warning("ilv+: the final map without the contradicting parts could not be solved (%s)", exc.message)
         if not refused:
             return notes
-        return notes + self._relieve(refused, base, bent, judgement=judgement)
+        gone = np.unique(np.concatenate(refused))  # contradicting parts may overlap
+        gone_clusters = set(self._cluster_of[gone].tolist())
+        try:
+            self._apply(remove=gone[np.isin(gone, self.graph.loop_id_array())], relinearize=False)
+            self.graph.restart(base.poses)
+            for _ in range(self.JOINT_ROUNDS):  # accepted loops the relieved map no longer holds
+                held = self._ids(Fate.ACCEPTED)
+                loose = held[self._residual_chi2(self.graph.estimate(), held) >= self.gate_chi2]
+                if len(loose) == 0:
+                    break
+                self._fate[loose] = Fate.REJECTED
+                self._apply(remove=loose)
+        except OptimisationFailed as exc:
+            log.warning("ilv+: the map without the refused clusters failed (%s); rebuilt", exc.message)
+            self._rebuild()
+        span = self.plus.cluster_span_frames
+        held = [(int(self._q[members].min()) - span, int(self._q[members].max()) + span) for members in refused]  # their stretches
+        for c in self.clusters.values():
+            if c.id in gone_clusters or not np.any(self._fate[c.members] == Fate.REJECTED):
+                continue
+            q = self._q[c.members]
+            rival = any(q.min() <= last and first <= q.max() for first, last in held)
+            if c.opponents & gone_clusters or rival:  # refused against them, or in the map they bent where they held its stretch
+                self._near_misses[c.id] = 0.0  # whatever ratio an earlier try, in the map they bent, left
+        before = self._fate == Fate.ACCEPTED
+        since = min((self.clusters[c].window for c in gone_clusters if c in self.clusters), default=None)
+        self._retry_near_misses(exclude=gone_clusters, relieved=None if since is None else (since, bent))
+        if np.any(np.isin(self._fate, (Fate.PENDING, Fate.SCREENED))):  # those screened out in the map they bent
+            self._verify_waiting(final=True)
+        came = np.flatnonzero((self._fate == Fate.ACCEPTED) & ~before)
+        if len(came):
+            notes.append(f"end of the log: {len(came)} refused or screened-out loop{'s' if len(came) > 1 else ''} accepted once those left")
+            if judgement < self.REJUDGE_ROUNDS:  # they are judged by the same rule
+                notes += self._rejudge_on_count(came, judgement=judgement + 1)
+        return notes
 
     #: :meth:`_displacing_runs`: loops paired over short cycles within this many frames, and a
     #: cycle agrees below this many times the median gap of all of them.
@@ -2095,8 +2130,6 @@ class ConsensusVerifier(WindowedVerifier):
         (every short cycle with the loops before and after it above four times the median gap)
         whose flanks agree across it. It found s13587's group and no true run on 200 worlds, but
         not s13687's (seamed on one side), and with this judgement in place it never fired."""
-        if len(accepted) < 2:
-            return []
         runs = short_cycle_runs(
             self.chain, self._m[accepted], self._q[accepted], self._z[accepted], span_frames=self.RUN_SPAN_FRAMES, gap_factor=self.RUN_GAP_FACTOR
         )
@@ -2117,50 +2150,6 @@ class ConsensusVerifier(WindowedVerifier):
             if np.count_nonzero((offset > 0) & (offset <= self.RUN_SPAN_FRAMES)) >= self.plus.frontier_min_loops:
                 found.append(run)
         return found
-
-    def _relieve(self, refused: list[np.ndarray], base: "pose_graph.PoseGraphSolution", bent: np.ndarray, *, judgement: int) -> list[str]:
-        """At the end of the log, after ``refused`` (loop arrays whose fates are already set)
-        leave the final map: the graph restarts at ``base`` (the map solved without them), the
-        accepted loops it no longer holds leave, the clusters refused against them or in their
-        stretches are tried again (:meth:`_retry_near_misses`), the loops screened out in the map
-        they bent (``bent``) are verified again, and what joins is judged on the count
-        (:meth:`_rejudge_on_count`, round ``judgement + 1``). Returns notes for the step."""
-        notes: list[str] = []
-        gone = np.unique(np.concatenate(refused))  # contradicting parts may overlap
-        gone_clusters = set(self._cluster_of[gone].tolist())
-        try:
-            self._apply(remove=gone[np.isin(gone, self.graph.loop_id_array())], relinearize=False)
-            self.graph.restart(base.poses)
-            for _ in range(self.JOINT_ROUNDS):  # accepted loops the relieved map no longer holds
-                held = self._ids(Fate.ACCEPTED)
-                loose = held[self._residual_chi2(self.graph.estimate(), held) >= self.gate_chi2]
-                if len(loose) == 0:
-                    break
-                self._fate[loose] = Fate.REJECTED
-                self._apply(remove=loose)
-        except OptimisationFailed as exc:
-            log.warning("ilv+: the map without the refused clusters failed (%s); rebuilt", exc.message)
-            self._rebuild()
-        span = self.plus.cluster_span_frames
-        held = [(int(self._q[members].min()) - span, int(self._q[members].max()) + span) for members in refused]  # their stretches
-        for c in self.clusters.values():
-            if c.id in gone_clusters or not np.any(self._fate[c.members] == Fate.REJECTED):
-                continue
-            q = self._q[c.members]
-            rival = any(q.min() <= last and first <= q.max() for first, last in held)
-            if c.opponents & gone_clusters or rival:  # refused against them, or in the map they bent where they held its stretch
-                self._near_misses[c.id] = 0.0  # whatever ratio an earlier try, in the map they bent, left
-        before = self._fate == Fate.ACCEPTED
-        since = min((self.clusters[c].window for c in gone_clusters if c in self.clusters), default=None)
-        self._retry_near_misses(exclude=gone_clusters, relieved=None if since is None else (since, bent))
-        if np.any(np.isin(self._fate, (Fate.PENDING, Fate.SCREENED))):  # those screened out in the map they bent
-            self._verify_waiting(final=True)
-        came = np.flatnonzero((self._fate == Fate.ACCEPTED) & ~before)
-        if len(came):
-            notes.append(f"end of the log: {len(came)} refused or screened-out loop{'s' if len(came) > 1 else ''} accepted once those left")
-            if judgement < self.REJUDGE_ROUNDS:  # they are judged by the same rule
-                notes += self._rejudge_on_count(came, judgement=judgement + 1)
-        return notes
 
     def _judge_on_count(self, members: np.ndarray, held: np.ndarray, base: "pose_graph.PoseGraphSolution", waiting: np.ndarray, *, held_drop: bool = False) -> tuple[Fate, str, np.ndarray, "pose_graph.PoseGraphSolution"] | None:
         """:meth:`_rejudge_on_count`'s rule for accepted ``members`` of the map of the ``held``
