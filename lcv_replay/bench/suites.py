@@ -17,6 +17,9 @@ Built-in suites:
     1,000 outliers (6 cases); 60 cases, each seeded.
 ``extended``
     ``standard`` + ``vertigo`` + ``generated`` (108 cases).
+``regressions``
+    The generated worlds on which ``ilv+`` once accepted false loops or missed the bar (57 of
+    2,000 poses, one of 5,000), run with ``ilv+``, GNC-TLS, DCS and the oracle.
 ``quick``
     A CI subset: ``robustslam_kitti`` 06 at alpha 0.50 and 07 at alpha 0.00.
 
@@ -224,7 +227,8 @@ def world_cases(
     group_size: int = 10,
 ) -> tuple[SuiteCase, ...]:
     """Generated worlds (layouts × poses × noise) spoiled by ``outliers`` in each mode, per seed;
-    named ``<layout>-<poses>-<noise>-<mode>-<outliers>-s<seed>``."""
+    named ``<layout>-<poses>-<noise>-<mode>-<outliers>-s<seed>``, the mode ``group<n>`` where
+    groups are not of 10 (``ring-2k-heavy-group20-400-s9804``)."""
     layouts, poses, noise, modes, outliers, seeds = (tuple(v) for v in (layouts, poses, noise, modes, outliers, seeds))
     cases = []
     for layout in layouts:
@@ -236,9 +240,10 @@ def world_cases(
                         for seed in seeds:
                             world = WorldSpec(layout=layout, poses=int(n), noise=model, seed=int(seed))  # type: ignore[arg-type]
                             size = world.name.split("-")[1]
+                            label = f"{mode}{group_size}" if mode == "group" and group_size != 10 else mode
                             cases.append(
                                 SuiteCase(
-                                    name=f"{layout}-{size}-{model}-{mode}-{count}-s{seed}",
+                                    name=f"{layout}-{size}-{model}-{label}-{count}-s{seed}",
                                     outliers=int(count),
                                     outlier_mode=mode,
                                     group_size=group_size,
@@ -264,6 +269,30 @@ def _generated_cases() -> tuple[SuiteCase, ...]:
     cases.extend(world_cases(poses=[5000], noise=["gaussian", "misdeclared"], modes=["random", "group"], outliers=[1000], seeds=[4], layouts=["grid"]))
     cases.extend(world_cases(poses=[10000], noise=["gaussian"], modes=["random"], outliers=[1000], seeds=[5], layouts=["ring"]))
     cases.extend(world_cases(poses=[10000], noise=["heavy"], modes=["group"], outliers=[1000], seeds=[5], layouts=["ring"]))
+    return tuple(cases)
+
+
+def _regression_cases() -> tuple[SuiteCase, ...]:
+    """The built-in ``regressions`` suite: the generated worlds on which ``ilv+`` once went wrong
+    (drawn fresh at a development stop, fixed at that or a later one) or still misses the bar
+    (docs/verification-bench.md, each stop's "Where issue 16 stands"). The unit tests keep one
+    world per fix (tests/verification/test_consensus.py); this suite holds every one of them."""
+    heavy_rings = {
+        10: (9102, 9104, 9207, 9300, 9302, 9308, 9404, 9420, 9421, 9900, 9903, 10301, 10612, 10712, 11008, 11803, 11804,
+             12008, 12219, 12805, 13503, 13511, 13514, 13587, 13663, 13687),
+        20: (9804, 9805, 9852, 11604, 12708, 13201, 13518, 13597, 13609, 13633, 13653, 13704),
+        5: (9755, 10407),
+    }
+    heavy_grids = {10: (11911, 13520, 13559, 13565, 13611), 20: (12905, 13585, 13588, 13712)}
+    cases: list[SuiteCase] = []
+    for layout, by_size in (("ring", heavy_rings), ("grid", heavy_grids)):
+        for size, seeds in by_size.items():
+            cases.extend(world_cases([layout], [2000], ["heavy"], ["group"], [400], seeds, group_size=size))
+    cases.extend(world_cases(["ring"], [2000], ["misdeclared"], ["group"], [400], [12400, 13718]))
+    cases.extend(world_cases(["ring"], [2000], ["anisotropic"], ["group"], [400], [13695]))
+    cases.extend(world_cases(["ring"], [2000], ["anisotropic"], ["group"], [500], [305]))
+    cases.extend(world_cases(["grid"], [2000], ["anisotropic"], ["group"], [400], [12464, 12465, 13634, 13635]))
+    cases.extend(world_cases(["ring"], [5000], ["heavy"], ["group"], [1000], [9007]))
     return tuple(cases)
 
 
@@ -294,6 +323,12 @@ BUILTIN_SUITES: dict[str, Suite] = {
         "extended",
         robustslam_cases() + vertigo_cases() + _VERTIGO_SUITE + _generated_cases(),
         description="standard + vertigo + generated",
+    ),
+    "regressions": Suite(
+        "regressions",
+        _regression_cases(),
+        methods=("ilv+", "gnc", "dcs", "oracle"),
+        description="generated worlds where ilv+ once went wrong (fixed) or still misses the bar",
     ),
     "quick": Suite(
         "quick",

@@ -75,7 +75,7 @@ def bench_verify_command(
 )
 def bench_suite_command(
     quick: bool = typer.Option(False, "--quick", help="The CI subset (suite 'quick')."),
-    suite: Optional[str] = typer.Option(None, "--suite", help="Built-in suite name (standard, vertigo, generated, extended, quick) or a suite TOML file."),
+    suite: Optional[str] = typer.Option(None, "--suite", help="Built-in suite name (standard, vertigo, generated, extended, regressions, quick) or a suite TOML file."),
     seeds: Optional[int] = typer.Option(None, "--seeds", min=1, help="Redraw every seeded case (outliers injected, generated worlds) with N new seeds, one case each."),
     first_seed: Optional[int] = typer.Option(None, "--first-seed", min=0, help="With --seeds: use seeds S..S+N-1 (default: drawn at random, printed, so the run can be repeated)."),
     method: list[str] = typer.Option([], "--method", "-m", help=_METHOD_HELP + " Default: the suite's, else none, ir-only, dcs, gm, cauchy, gnc, oracle, ilv, ilv+."),

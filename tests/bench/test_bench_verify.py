@@ -171,7 +171,7 @@ def test_suite_toml_errors_name_the_problem(tmp_path, text, message):
 
 
 def test_unknown_suite_name_lists_the_builtins():
-    with pytest.raises(ConfigError, match="standard, vertigo, generated, extended, quick"):
+    with pytest.raises(ConfigError, match="standard, vertigo, generated, extended, regressions, quick"):
         get_suite("standrd")
 
 

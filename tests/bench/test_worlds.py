@@ -108,6 +108,8 @@ def test_suites_of_generated_worlds_and_fresh_seeds(tmp_path):
     again = with_seeds(type(generated)("x", (case,)), [7, 8]).cases
     assert [c.name for c in again] == ["grid-1k-heavy-group-100-s7", "grid-1k-heavy-group-100-s8"]
     assert [c.world.seed for c in again] == [7, 8] and [c.seed for c in again] == [7, 8]
+    twenty = world_cases(["ring"], [2000], ["heavy"], ["group"], [400], [9804], group_size=20)[0]
+    assert twenty.name == "ring-2k-heavy-group20-400-s9804" and twenty.with_seed(1).name == "ring-2k-heavy-group20-400-s1"
 
     path = tmp_path / "w.toml"
     path.write_text('[[world]]\nlayouts = ["ring"]\nposes = [1500]\nnoise = ["misdeclared"]\nmodes = ["local", "group"]\noutliers = [50]\nseeds = [4]\n')
@@ -129,6 +131,20 @@ def test_suites_of_generated_worlds_and_fresh_seeds(tmp_path):
     assert refused.value.path == path  # the file the bad table is in, not the one including it
     with pytest.raises(ConfigError, match="exactly one"):
         SuiteCase("both", graph="x.g2o", world=WorldSpec())
+
+
+def test_the_regressions_suite_names_each_world_once_with_its_group_size():
+    """Rows are keyed by case name (the oracle's ATE too), so worlds that differ in group size only
+    must not share one."""
+    suite = BUILTIN_SUITES["regressions"]
+    names = [c.name for c in suite.cases]
+    assert len(names) == len(set(names)) and set(suite.methods) == {"ilv+", "gnc", "dcs", "oracle"}
+    by_name = {c.name: c for c in suite.cases}
+    assert by_name["ring-2k-heavy-group20-400-s9804"].group_size == 20
+    assert by_name["ring-2k-heavy-group5-400-s9755"].group_size == 5
+    assert by_name["ring-2k-heavy-group-400-s11008"].group_size == 10
+    assert by_name["ring-5k-heavy-group-1000-s9007"].world.poses == 5000
+
 
 
 def test_a_world_case_builds_once_into_the_work_folder(tmp_path):

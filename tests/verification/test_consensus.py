@@ -674,7 +674,7 @@ def test_a_revisit_cut_short_by_the_window_end_does_not_lose_to_a_false_group_on
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("seed", "group_size"), [(9104, 10), (9207, 10), (9300, 10), (9420, 10), (9421, 10), (9308, 10), (9804, 20), (9302, 10), (9755, 5), (9852, 20), (9404, 10), (9805, 20), (10301, 10), (10407, 5), (11008, 10), (11804, 10), (11803, 10), (12008, 10), (10612, 10)])
+@pytest.mark.parametrize(("seed", "group_size"), [(9104, 10), (9300, 10), (9420, 10), (9421, 10), (9308, 10), (9852, 20), (9404, 10), (10301, 10), (10407, 5), (11008, 10), (11804, 10), (11803, 10), (12008, 10)])
 def test_fresh_heavy_tailed_rings_where_a_verdict_went_wrong(tmp_path, seed, group_size):
     """Rings of 2,000 poses with heavy-tailed odometry and 400 grouped outliers (in groups of 10,
     or of 5 or 20), on seeds drawn fresh; before each fix (measured; GNC-TLS accepts no false loop on
@@ -781,7 +781,13 @@ def test_fresh_heavy_tailed_rings_where_a_verdict_went_wrong(tmp_path, seed, gro
       revisit tried in its window) it no longer joins: the hypothesis built afresh leaves it
       out (none, 0.983, 1.19 m; the oracle's 1.21).
 
-    GNC-TLS's recall on these rings is 0.80 to 0.87 (measured on thirteen of the first fourteen)."""
+    GNC-TLS's recall on these rings is 0.80 to 0.87 (measured on thirteen of the first fourteen).
+
+    Six of them are not run here: 9207 (the contests solved at the end, as 9104's), 9804 (as
+    9308), 9302 and 9755 (as 9852), 9805 (as 9404) and 10612 (whose group no longer joins). They
+    guard fixes that another seed here guards too, and the suite has a time budget; every world of
+    this file is in the built-in ``regressions`` bench suite (``lcv-replay bench suite --suite
+    regressions``), run at each development stop."""
     row, oracle = _world_rows(tmp_path, "ring", 2000, 400, seed, methods=("ilv+", "oracle"), group_size=group_size)
     assert row.false_positives == 0
     assert row.recall >= 0.95
@@ -840,7 +846,7 @@ def test_a_false_group_that_took_the_free_end_also_answers_to_the_revisits_refus
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("seed", "where", "ate_factor"), [(12805, "10 loops (1615-1624↔557-566)", 1.5), (9900, "11 loops (1133-1148↔189-202)", 1.1)])
+@pytest.mark.parametrize(("seed", "where", "ate_factor"), [(12805, "10 loops (1615-1624↔557-566)", 1.5)])
 def test_a_false_group_beside_a_true_revisit_that_contradicts_it_is_flagged_ambiguous(tmp_path, seed, where, ate_factor):
     """Heavy-tailed rings of 2,000 poses with 400 grouped outliers (groups of 10) where a false
     group runs beside a true revisit of the same road, a frame or two off it, and clustered with
@@ -861,7 +867,8 @@ def test_a_false_group_beside_a_true_revisit_that_contradicts_it_is_flagged_ambi
       0.974, ATE 1.02 times the oracle's.
 
     Now the parts of accepted revisits that contradict an accepted loop beside them (a pair
-    across the part's edge fails) are judged on the count alone."""
+    across the part's edge fails) are judged on the count alone. 9900 is run by the
+    ``regressions`` bench suite, not here (the suite's time budget)."""
     run, oracle = _world_runs(tmp_path, "ring", 2000, 400, seed, methods=("ilv+", "oracle"))
     _assert_fixed(run, oracle, recall=0.93, note=(f"{where} flagged ambiguous",), ate_factor=ate_factor)
     assert run.row.ambiguous - run.row.ambiguous_true >= 9  # the group is shown, not dropped
@@ -1087,7 +1094,6 @@ def test_the_large_part_of_a_refused_revisit_is_tried_in_its_window_before_a_gro
 @pytest.mark.parametrize(
     ("seed", "note", "recall"),
     [
-        (13587, ("8 loops (1257-1264↔142-149) flagged ambiguous: the final map holds them only on the count", "4 loops of their stretches"), 0.998),
         (13687, ("10 loops (1413-1422", "flagged ambiguous: the final map holds them only on the count", "6 loops of their stretches"), 0.98),
     ],
 )
@@ -1108,7 +1114,9 @@ def test_a_false_group_two_frames_off_a_true_revisit_of_the_same_stretch_is_flag
       loops out where the revisit's loops are sparse; no short cycle reaches it from before, so
       it is seamed on one side only: 10 false loops, recall 0.976, ATE 0.973 m (the oracle's
       1.006). It displaced the refused loops of its query frames, so it is judged on the count,
-      credited with them: flagged ambiguous (measured: none accepted, recall 0.984, 0.983 m)."""
+      credited with them: flagged ambiguous (measured: none accepted, recall 0.984, 0.983 m).
+
+    s13587 is run by the ``regressions`` bench suite, not here (the suite's time budget)."""
     run, oracle = _world_runs(tmp_path, "ring", 2000, 400, seed, methods=("ilv+", "oracle"), group_size=10)
     _assert_fixed(run, oracle, recall=recall, note=note)
     assert run.row.ambiguous_true == 0
