@@ -18,7 +18,7 @@ Built-in suites:
 ``extended``
     ``standard`` + ``vertigo`` + ``generated`` (108 cases).
 ``regressions``
-    The generated worlds on which ``ilv+`` once accepted false loops or missed the bar (59 of
+    The generated worlds on which ``ilv+`` once accepted false loops or missed the bar (62 of
     2,000 poses, one of 5,000), run with ``ilv+``, GNC-TLS, DCS and the oracle.
 ``quick``
     A CI subset: ``robustslam_kitti`` 06 at alpha 0.50 and 07 at alpha 0.00.
@@ -278,9 +278,9 @@ def _regression_cases() -> tuple[SuiteCase, ...]:
     (docs/verification-bench.md, each stop's "Where issue 16 stands"). The unit tests keep one
     world per fix (tests/verification/test_consensus.py); this suite holds every one of them."""
     heavy_rings = {
-        10: (9102, 9104, 9207, 9300, 9302, 9308, 9404, 9420, 9421, 9900, 9903, 10301, 10612, 10712, 11008, 11803, 11804,
-             12008, 12219, 12805, 13503, 13511, 13514, 13587, 13663, 13687),
-        20: (9804, 9805, 9852, 11604, 12708, 13201, 13518, 13597, 13609, 13633, 13653, 13704, 13728),
+        10: (9102, 9104, 9207, 9300, 9302, 9308, 9404, 9420, 9421, 9900, 9903, 10301, 10612, 10712, 11008, 11023, 11803,
+             11804, 12008, 12219, 12805, 13503, 13511, 13514, 13556, 13587, 13663, 13687),
+        20: (9804, 9805, 9852, 11604, 12708, 13201, 13518, 13529, 13597, 13609, 13633, 13653, 13704, 13728),
         5: (9755, 10407),
     }
     heavy_grids = {10: (11911, 13520, 13559, 13565, 13611, 13731), 20: (12905, 13585, 13588, 13712)}
