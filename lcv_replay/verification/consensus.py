@@ -311,19 +311,68 @@ class ConsensusVerifier(WindowedVerifier):
     def _declared_solution(self) -> np.ndarray:
         """The trajectory reported at the end: the odometry and the accepted loops solved under
         the log's declared noise (Levenberg-Marquardt from the working solution), as the oracle,
-        the baselines and the user's own back end (``accepted.g2o`` of ``--export``) solve them.
+        the baselines and the user's own back end (``accepted.g2o`` of ``--export``) solve them,
+        except that the odometry steps that slipped are loosened (:meth:`_slip_factors`; none on
+        a Gaussian chain; ``accepted.g2o`` keeps the declared odometry).
         The noise scales fitted on the way re-weight the loops for the decisions; they are a
         verification device, not a claim about the log (measured: on Manhattan they moved the
         estimate from 0.91 to 0.97 m ATE, on generated worlds with mis-declared noise from 0.135
         to 0.106 m, with the same loops)."""
         x = self.graph.estimate().copy()
-        if self.loop_scale == 1.0 and self.odometry_scale == 1.0:
-            return x
+        slips = self._slip_factors(x)
+        accepted = self._ids(Fate.ACCEPTED)
         try:
-            return self._batch_solution(self._ids(Fate.ACCEPTED), x, loop_scale=1.0, odometry_scale=1.0).poses
+            if self.loop_scale != 1.0 or self.odometry_scale != 1.0:
+                x = self._batch_solution(accepted, x, loop_scale=1.0, odometry_scale=1.0).poses
+            if slips:
+                x = self._batch_solution(accepted, x, loop_scale=1.0, odometry_scale=1.0, odometry_variance_factors=slips).poses
         except OptimisationFailed as exc:
-            log.warning("ilv+: the final solution under the declared noise failed (%s); reporting the working solution", exc.message)
-            return x
+            log.warning("ilv+: the final solution under the declared noise failed (%s); reporting the one before", exc.message)
+        return x
+
+    #: The most solves of :meth:`_slip_factors`.
+    SLIP_LOOSENING_ROUNDS = 6
+
+    def _slip_factors(self, x: np.ndarray) -> dict[int, float]:
+        """The odometry steps of the working map ``x`` that slipped, and the factor by which each
+        one's covariance is loosened in the reported map (:meth:`_declared_solution`): a step
+        whose chi-square exceeds the threshold of :meth:`_slip_shows` (at the odometry level in
+        force) is loosened by that chi-square over 3 (its mean under Gaussian noise), and the
+        working map is solved again with it, until no step's factor grows (at most
+        :data:`SLIP_LOOSENING_ROUNDS` solves). Decides nothing: the verdicts are made before.
+
+        Why: a least-squares map spreads a slip (a heavy-tailed odometry step, metres off) over
+        the steps around it, and the accepted loops on either side pull against the spread. A
+        Gaussian chain shows no step beyond the threshold but by a chance of
+        :data:`SLIP_EVIDENCE`, so its map is reported as before. Measured (docs/verification-bench.md,
+        thirty-eighth stop), ATE of the reported map, the verdicts unchanged: on twelve 2k worlds
+        it was designed on, heavy-tailed grid s13712 (a 29.9 m step at frame 1718) 3.73 -> 1.90 m
+        (the oracle's 1.07), grid s13520 0.331 -> 0.215 m (0.255), ring s13663 0.847 -> 0.683 m
+        (0.748), ring s12219 0.757 -> 0.627 m (0.730), ring s11008 +0.3 %, seven unchanged; on 40
+        unseen worlds 35 unchanged, three better (by 0.2 to 8.6 %) and two worse (1.6 and 4.1 %),
+        none past the bar. Detecting the slips on the solution under the declared noise instead
+        marked ordinary steps of mis-declared worlds (odometry declared five times too loose) and
+        put two of them past the bar."""
+        n = len(x)
+        if n < 2:
+            return {}
+        threshold = self._slip_threshold(n)
+        accepted = self._ids(Fate.ACCEPTED)
+        factors: dict[int, float] = {}
+        for _ in range(self.SLIP_LOOSENING_ROUNDS):
+            chi2 = self._odometry_chi2(x, n)
+            grown = {int(k): float(chi2[k]) / 3.0 for k in np.flatnonzero(chi2 > threshold) if chi2[k] / 3.0 > factors.get(int(k), 1.0)}
+            if not grown:
+                break
+            factors.update(grown)
+            try:
+                x = self._batch_solution(accepted, x, odometry_variance_factors=factors).poses
+            except OptimisationFailed as exc:
+                log.warning("ilv+: the working map with the odometry loosened at slips failed (%s)", exc.message)
+                break
+        if factors:
+            log.debug("ilv+: the reported map loosens the odometry at %d steps (largest factor %.0f)", len(factors), max(factors.values()))
+        return factors
 
     # ------------------------------------------------------------------ the window end
     def _window_end(self, *, final: bool = False) -> VerifierStep:
@@ -3191,14 +3240,19 @@ class ConsensusVerifier(WindowedVerifier):
         at this retry: 3.3 to 6.7 on two Gaussian worlds, 3.2 and 14.4 on two mis-declared ones,
         19.3 on heavy-tailed ring s13518, whose tail switches the retry on anyway; 57.9 on grid
         s13520; the threshold is 27.3 at 2,000 frames)."""
-        from scipy import special
-
         x = self.graph.estimate()
         n = len(x)
         if n < 2:
             return False
-        threshold = float(special.chdtri(3, self.SLIP_EVIDENCE / (n - 1)))
-        return bool(np.max(self._odometry_chi2(x, n)) > threshold * self.odometry_scale)
+        return bool(np.max(self._odometry_chi2(x, n)) > self._slip_threshold(n))
+
+    def _slip_threshold(self, n: int) -> float:
+        """The chi-square under the declared noise beyond which one of the ``n - 1`` odometry
+        steps is a slip (:meth:`_slip_shows`): the ``χ²(3)`` quantile exceeded with probability
+        :data:`SLIP_EVIDENCE` / ``(n - 1)``, at the odometry level in force."""
+        from scipy import special
+
+        return float(special.chdtri(3, self.SLIP_EVIDENCE / (n - 1))) * self.odometry_scale
 
     def _retry_across_slips(self) -> None:
         """At the end of the log, where the gate cuts the innovations' fitted tail
@@ -3362,16 +3416,19 @@ class ConsensusVerifier(WindowedVerifier):
         loop_scale: float | None = None,
         odometry_scale: float | None = None,
         odometry_robust: pose_graph.RobustKernel | None = None,
+        odometry_variance_factors: dict[int, float] | None = None,
         relative_error_tol: float = 1e-5,
     ) -> pose_graph.PoseGraphSolution:
         """The odometry and ``loops`` solved in one batch (Levenberg-Marquardt from ``initial``,
-        ``(N, 3)``) under the given noise scales (default: those in force), outside the working
+        ``(N, 3)``) under the given noise scales (default: those in force; the steps of
+        ``odometry_variance_factors`` loosened by their factors), outside the working
         hypothesis' iSAM2 graph."""
         n = len(initial)
         odometry_scale = self.odometry_scale if odometry_scale is None else odometry_scale
         graph = pose_graph.build_graph(
             self.chain.poses[:n], self.chain.information / odometry_scale, (),
             loop_default_information=self.history.loop_default_information, odometry_robust=odometry_robust,
+            odometry_variance_factors=odometry_variance_factors,
         )
         pose_graph.add_loop_factors(graph, [self._factor(int(c), loop_scale) for c in loops])
         return pose_graph.optimise_lm(graph, initial, max_iterations=self.config.max_iterations, relative_error_tol=relative_error_tol)

@@ -27,7 +27,7 @@ import itertools
 import logging
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable, Literal, NamedTuple, Sequence, TypeVar
+from typing import TYPE_CHECKING, Callable, Literal, Mapping, NamedTuple, Sequence, TypeVar
 
 import numpy as np
 
@@ -154,6 +154,7 @@ def build_graph(
     loop_default_information: np.ndarray,
     robust: RobustKernel | None = None,
     odometry_robust: RobustKernel | None = None,
+    odometry_variance_factors: Mapping[int, float] | None = None,
 ):
     """Pose graph of odometry plus ``constraints`` (see the module docstring for factor order).
 
@@ -165,6 +166,8 @@ def build_graph(
         robust: kernel wrapped around every loop factor, or ``None`` for plain Gaussian.
         odometry_robust: kernel wrapped around every odometry factor (heavy-tailed odometry:
             wheel slips, poor scan matches), or ``None`` for plain Gaussian.
+        odometry_variance_factors: ``{k: f}``: the step from frame ``k`` to ``k + 1`` has ``f``
+            times the covariance of the others (a slip's, loosened).
 
     Returns:
         ``gtsam.NonlinearFactorGraph`` with ``N + len(constraints)`` factors.
@@ -182,8 +185,12 @@ def build_graph(
     odom_noise = information_to_noise(odom_information, what="odometry")
     if odometry_robust is not None:
         odom_noise = gtsam.noiseModel.Robust.Create(odometry_robust.estimator(), odom_noise)
+    loosened = {}
+    for k, factor in (odometry_variance_factors or {}).items():
+        noise = information_to_noise(np.asarray(odom_information, dtype=np.float64) / float(factor), what="odometry")
+        loosened[int(k)] = noise if odometry_robust is None else gtsam.noiseModel.Robust.Create(odometry_robust.estimator(), noise)
     for k, step in enumerate(odometry_between(odom)):
-        graph.add(gtsam.BetweenFactorPose2(k, k + 1, gtsam.Pose2(*step), odom_noise))
+        graph.add(gtsam.BetweenFactorPose2(k, k + 1, gtsam.Pose2(*step), loosened.get(k, odom_noise)))
     for c in constraints:
         if not (0 <= c.match_frame < n and 0 <= c.query_frame < n):
             raise VerificationError(

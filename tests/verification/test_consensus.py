@@ -458,7 +458,11 @@ def test_a_slip_that_the_final_map_shows_switches_on_the_retry_across_slips(tmp_
     threshold of 27.3. Under heavy-tailed odometry 9 refused true loops (frames 851-1376 to
     649-656, and 1553 to 881) fit the accepted loops' solution and join. Measured: recall 0.938
     -> 0.949, ATE 0.473 -> 0.345 m (1.85 -> 1.35 times the oracle's 0.255; GNC-TLS 0.390, DCS
-    0.259), no false loop either way."""
+    0.259), no false loop either way.
+
+    Since the thirty-eighth stop the reported map loosens the odometry at the steps of the
+    working map beyond the slip threshold (six here: frames 154, 424-426, 655 and 1552): ATE
+    0.331 -> 0.215 m, 0.84 times the oracle's, from the same loops."""
     from lcv_replay.bench.verify import verify_inputs
 
     inputs = _world_inputs(tmp_path, "grid", 2000, 400, 13520)
@@ -467,7 +471,7 @@ def test_a_slip_that_the_final_map_shows_switches_on_the_retry_across_slips(tmp_
     assert {(1161, 649), (1373, 653), (851, 653)} <= accepted
     assert all(pair in inputs.true_pairs for pair in accepted)
     assert any("across odometry slips" in n and "(1161↔649)" in n for n in run.result.last_step.notes)
-    assert run.row.ate_rmse_m <= 1.5 * oracle.ate_rmse_m
+    assert run.row.ate_rmse_m <= 1.1 * oracle.ate_rmse_m
     # the true revisit 1543-1577 to 872-904, split by a slip into parts that contradict each
     # other, stays whole (its union judged first): before, its parts of 7 and 12 were flagged
     assert run.row.ambiguous == 0
@@ -1311,3 +1315,15 @@ def test_noise_scales_that_gtsam_cannot_solve_leave_the_verifier_as_it_was(monke
     assert verifier.graph is graph
     np.testing.assert_array_equal(verifier.graph.estimate(), x)
     assert len(result.accepted_constraint_ids) == len(true)
+
+
+def test_the_reported_map_is_the_working_one_where_no_odometry_step_slips():
+    """The reported map loosens the odometry only at a step beyond the slip threshold; a Gaussian
+    chain has none, so (the noise scales not moved) the trajectory is the working solution of the
+    accepted loops and the odometry under the declared noise, unchanged."""
+    world = circle_world(frames_per_lap=200, laps=2.0, true_every=2, num_false=0, yaw_bias_rad=0.0002)
+    verifier, _, result = _run(world, [_loop(world, q, q - 200) for q in range(205, 400, 2)])
+    assert len(result.accepted_constraint_ids) >= 95 and verifier.loop_scale == verifier.odometry_scale == 1.0
+    assert verifier._odometry_chi2(result.trajectory, len(result.trajectory)).max() < verifier._slip_threshold(len(result.trajectory))
+    assert verifier._slip_factors(result.trajectory) == {}
+    assert np.array_equal(result.trajectory, verifier.graph.estimate())
