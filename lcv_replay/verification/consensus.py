@@ -322,15 +322,13 @@ class ConsensusVerifier(WindowedVerifier):
         to 0.106 m, with the same loops)."""
         x = self.graph.estimate().copy()
         slips = self._slip_factors(x)
-        accepted = self._ids(Fate.ACCEPTED)
+        if self.loop_scale == 1.0 and self.odometry_scale == 1.0 and not slips:
+            return x
         try:
-            if self.loop_scale != 1.0 or self.odometry_scale != 1.0:
-                x = self._batch_solution(accepted, x, loop_scale=1.0, odometry_scale=1.0).poses
-            if slips:
-                x = self._batch_solution(accepted, x, loop_scale=1.0, odometry_scale=1.0, odometry_variance_factors=slips).poses
+            return self._batch_solution(self._ids(Fate.ACCEPTED), x, loop_scale=1.0, odometry_scale=1.0, odometry_variance_factors=slips).poses
         except OptimisationFailed as exc:
-            log.warning("ilv+: the final solution under the declared noise failed (%s); reporting the one before", exc.message)
-        return x
+            log.warning("ilv+: the final solution under the declared noise failed (%s); reporting the working solution", exc.message)
+            return x
 
     #: The most solves of :meth:`_slip_factors`.
     SLIP_LOOSENING_ROUNDS = 6
