@@ -978,6 +978,29 @@ def test_small_clusters_refused_on_a_bound_that_fit_the_final_map_are_tried_agai
 
 
 @pytest.mark.slow
+def test_a_local_outlier_between_frames_two_apart_is_not_tried_as_a_lone_loop_across_a_drift(tmp_path):
+    """A heavy-tailed grid of 2,000 poses with 400 local outliers (each between frames two
+    apart), seed 13830 (drawn at the thirty-ninth stop). At the end of the log the lone refused
+    loops inside the innovations' fitted tail are tried together
+    (:meth:`ConsensusVerifier._retry_lone_in_tail`); under its first version a local outlier
+    (frames 1822 to 1820, 1.4 gates off the final map, inside the tail's 2.3) joined with three
+    true loops: 1 false loop. The odometry between frames two apart is tighter than the loop
+    itself (the smallest generalised eigenvalue of the two covariances 0.30), so no drift of it
+    explains the innovation, and the loop is not tried: none, and the three true loops (spanning
+    340 to 896 frames) still join."""
+    from lcv_replay.bench.suite import build_case_log
+    from lcv_replay.bench.suites import world_cases
+    from lcv_replay.bench.verify import load_inputs, verify_inputs
+
+    case = world_cases(["grid"], [2000], ["heavy"], ["local"], [400], [13830])[0]
+    run = verify_inputs(load_inputs(build_case_log(case, Path("/nonexistent"), tmp_path).path), "ilv+")
+    assert run.row.false_positives == 0
+    lone = next(note for note in run.result.last_step.notes if "lone loops inside the innovations' fitted tail" in note)
+    assert all(pair in lone for pair in ("(378↔38)", "(1299↔509)", "(1372↔476)"))
+    assert "(1822↔1820)" not in lone
+
+
+@pytest.mark.slow
 def test_true_loops_refused_under_a_wrongly_shaped_loop_noise_are_tried_under_the_fitted_shape(tmp_path):
     """A grid of 2,000 poses with 400 grouped outliers whose declared covariances are off by their
     own factor on each axis (``anisotropic``), seed 12464 (drawn at the eighteenth stop): the loops
