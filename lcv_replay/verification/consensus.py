@@ -110,8 +110,9 @@ gate alone. Then, where the accepted clusters' cycles reject the declared shape 
 noise axis by axis (x, y and yaw off by different factors, which one scale cannot fit), the refused
 loops near the final map are tried once more under the fitted shape
 (:meth:`ConsensusVerifier._retry_under_loop_shape`). Last, where the innovations' fitted tail
-reaches beyond the gate, the lone refused loops inside it (no other loop of their cluster refused)
-are tried together, each allowed a rise of the tail's bound
+reaches beyond the gate, the lone refused loops inside it (no other loop of their cluster refused,
+across odometry looser than the loop itself) are tried together, each allowed a rise of the tail's
+bound
 (:meth:`ConsensusVerifier._retry_lone_in_tail`): a true loop across a stretch that drifted beyond
 the declared noise. The map reported at the end is solved under
 the declared noise, with the odometry loosened at the steps where the working map shows a slip
@@ -3132,7 +3133,8 @@ class ConsensusVerifier(WindowedVerifier):
         drift, rather than the loop's own error, explain the innovation: a local outlier between
         frames two apart (grid-2k-heavy-local-400-s13830, frames 1822 to 1820: the smallest
         generalised eigenvalue 0.30) lay 1.4 gates off and joined under the first version; the
-        lone true loops tried span 58 frames or more (13 or more).
+        lone true loops tried on the worlds looked at span 58 frames or more (eigenvalues of 13
+        or more).
 
         Measured (docs/verification-bench.md, thirty-ninth stop): on ring s13728 (groups of 20)
         five lone true loops join, among them the one of frames 1471 to 1407 (2.4 gates off the
