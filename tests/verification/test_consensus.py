@@ -1177,20 +1177,6 @@ def test_a_false_group_contradicted_by_a_true_revisit_that_fits_without_it_is_fl
     _assert_fixed(run, oracle, recall=0.95, note=("10 loops (618-627↔55-64) flagged ambiguous", "a revisit of their stretches that contradicts them"))
 
 
-@pytest.mark.slow
-def test_a_large_true_revisit_refused_on_one_step_is_tried_again_at_the_end(tmp_path):
-    """A ring of 5,000 poses with heavy-tailed odometry and 1,000 grouped outliers, seed 9007
-    (drawn fresh). A true revisit of 178 loops was refused on one Gauss-Newton step at the third
-    window, where a true revisit of 123 loops of the same street held the map; at the end it lies
-    at a median of 1.01 gates from the final map, just outside the old condition for a second
-    try (median within one gate), inside the new one (within the near-miss bound, as for a
-    cluster refused by a solve). Measured before: recall 0.885, ATE 0.598 m; now 0.987, 0.561 m
-    (the oracle's 0.578; GNC-TLS 0.830, 0.548 m); no false loop either way."""
-    (row,) = _world_rows(tmp_path, "ring", 5000, 1000, 9007)
-    assert row.false_positives == 0
-    assert row.recall >= 0.98
-
-
 # ----------------------------------------------------------------------------------------------
 # The calibration: declared covariances far looser than the data (as in Vertigo Manhattan)
 # ----------------------------------------------------------------------------------------------
