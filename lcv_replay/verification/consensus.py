@@ -83,10 +83,10 @@ the conflicts they name are contested as at a window. Clusters
 refused by a near miss, clusters deposed by a contest, clusters
 refused against those and refused clusters of three loops or more that mostly fit the final
 solution are tried once more against the final hypothesis. Last, where the innovations' fitted
-tail reaches beyond the gate, the refused loops inside it that nearly fit the final map are tried
-under the looser of the declared odometry level and the one the long cycles show
-(:meth:`ConsensusVerifier._retry_under_looser_level`): true loops across a stretch of odometry
-worse than its bulk; then (where that tail, or a slip in the final map's odometry, shows) the
+tail reaches beyond the gate, the refused loops inside it that nearly fit the final map, across
+odometry looser than the loop itself, are tried under the looser of the declared odometry level
+and the one the long cycles show (:meth:`ConsensusVerifier._retry_under_looser_level`): true
+loops across a stretch of odometry worse than its bulk; then (where that tail, or a slip in the final map's odometry, shows) the
 refused loops that fit, as they are, the solution of the accepted loops under heavy-tailed
 (Cauchy) odometry, which bends the map at a slip instead of around it, are tried in that solution
 (:meth:`ConsensusVerifier._retry_across_slips`). Last of all, the
