@@ -86,7 +86,8 @@ solution are tried once more against the final hypothesis. Last, where the innov
 tail reaches beyond the gate, the refused loops inside it that nearly fit the final map, across
 odometry looser than the loop itself, are tried under the looser of the declared odometry level
 and the one the long cycles show (:meth:`ConsensusVerifier._retry_under_looser_level`): true
-loops across a stretch of odometry worse than its bulk; then (where that tail, or a slip in the final map's odometry, shows) the
+loops across a stretch of odometry worse than its bulk; then (where that tail, or a slip in the
+final map's odometry, shows) the
 refused loops that fit, as they are, the solution of the accepted loops under heavy-tailed
 (Cauchy) odometry, which bends the map at a slip instead of around it, are tried in that solution
 (:meth:`ConsensusVerifier._retry_across_slips`). Last of all, the
@@ -3004,8 +3005,8 @@ class ConsensusVerifier(WindowedVerifier):
                 members = cluster.members[self._fate[cluster.members] == Fate.REJECTED]
                 ok = self._try_again(members, solve=cluster.id in solved)
                 joins += ok
-                log.debug("ilv+: near miss tried again, %d loops %s%s %s", len(members), ", ".join(f"({q}↔{m})" for q, m in zip(self._q[members[:3]].tolist(), self._m[members[:3]].tolist())),
-                          " …" if len(members) > 3 else "", "accepted" if ok else "refused")
+                pairs = ", ".join(f"({q}↔{m})" for q, m in zip(self._q[members[:3]].tolist(), self._m[members[:3]].tolist()))
+                log.debug("ilv+: near miss tried again, %d loops %s%s %s", len(members), pairs, " …" if len(members) > 3 else "", "accepted" if ok else "refused")
 
     def _try_again(self, members: np.ndarray, *, solve: bool = False, rise_per_loop: float | None = None) -> bool:
         """Try refused ``members`` once more against the working hypothesis (:meth:`_trial`, with
