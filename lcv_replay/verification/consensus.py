@@ -3082,19 +3082,7 @@ class ConsensusVerifier(WindowedVerifier):
         bound = self._tail_bound()
         if self.odometry_scale >= looser or bound is None:
             return
-        rejected = self._ids(Fate.REJECTED)
-        x = self.graph.estimate()
-        chi2 = self._residual_chi2(x, rejected)
-        within = chi2 < self.NEAR_MISS * self.gate_chi2
-        rejected, chi2 = rejected[within], chi2[within]
-        near = []
-        for c, residual in zip(rejected.tolist(), chi2.tolist()):
-            if not self._odometry_dominates(c, looser):
-                continue
-            # the residual bounds the innovation from above: the query only where it does not prove it
-            if residual >= bound and self._linearised_innovation(x, c) >= bound:
-                continue
-            near.append((residual, c))
+        near = self._inside_tail(self.graph.estimate(), self._ids(Fate.REJECTED), bound, looser)
         if not near:
             return
         if not self._apply_scales(self.loop_scale, looser):
@@ -3108,6 +3096,18 @@ class ConsensusVerifier(WindowedVerifier):
                 continue
             ok = self._try_again(members, solve=True)
             log.debug("ilv+: under the odometry level %.3g, cluster of %d loops (%d-%d) %s", looser, len(members), self._q[members].min(), self._q[members].max(), "accepted" if ok else "refused")
+
+    def _inside_tail(self, x: np.ndarray, loops: np.ndarray, bound: float, level: float | None = None) -> list[tuple[float, int]]:
+        """The refused ``loops`` within :data:`NEAR_MISS` gates of the solution ``x``, across
+        odometry looser than themselves at ``level`` (:meth:`_odometry_dominates`), whose
+        linearised innovation there (:meth:`_linearised_innovation`) lies below ``bound``:
+        ``(residual, loop)`` pairs, in the order of ``loops``. The residual bounds the innovation
+        from above, so the covariance query is made only where it does not prove it."""
+        loops = np.asarray(loops, dtype=np.int64)
+        chi2 = self._residual_chi2(x, loops)
+        within = chi2 < self.NEAR_MISS * self.gate_chi2
+        return [(residual, c) for c, residual in zip(loops[within].tolist(), chi2[within].tolist())
+                if self._odometry_dominates(c, level) and (residual < bound or self._linearised_innovation(x, c) < bound)]
 
     def _linearised_innovation(self, x: np.ndarray, c: int) -> float:
         """Loop ``c``'s innovation at the solution ``x``, linearised: its residual under its own
@@ -3176,16 +3176,12 @@ class ConsensusVerifier(WindowedVerifier):
         bound = self._tail_bound()
         if bound is None:
             return
-        rejected = self._ids(Fate.REJECTED)
-        x = self.graph.estimate()
-        rejected = rejected[self._residual_chi2(x, rejected) < self.NEAR_MISS * self.gate_chi2]
-        inside = []
-        for c in rejected.tolist():
+        lone = []
+        for c in self._ids(Fate.REJECTED).tolist():
             cluster = self.clusters.get(int(self._cluster_of[c]))
-            if cluster is not None and np.count_nonzero(self._fate[cluster.members] == Fate.REJECTED) > 1:
-                continue
-            if self._odometry_dominates(c) and self._linearised_innovation(x, c) < bound:
-                inside.append(c)
+            if cluster is None or np.count_nonzero(self._fate[cluster.members] == Fate.REJECTED) <= 1:
+                lone.append(c)
+        inside = [c for _, c in self._inside_tail(self.graph.estimate(), np.asarray(lone, dtype=np.int64), bound)]
         if inside:
             ok = self._try_again(np.asarray(inside, dtype=np.int64), solve=True, rise_per_loop=bound)
             log.debug("ilv+: %d lone loops inside the fitted tail (%.1f) %s", len(inside), bound, "accepted" if ok else "refused")
