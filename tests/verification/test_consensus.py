@@ -995,7 +995,12 @@ def test_a_local_outlier_between_frames_two_apart_is_not_tried_as_a_loop_across_
     (:meth:`ConsensusVerifier._retry_under_looser_level`) asks the same. It tried this loop here
     (refused); on grid-10k-heavy-local-1000-s12603 such a loop joined under it, that world's one
     false loop. Now only the true loops across long stretches are tried (340 frames or more
-    here), and three join."""
+    here), and three join.
+
+    Since the forty-first stop the retry of the near misses (:meth:`ConsensusVerifier._retry_near_misses`)
+    asks it too of the clusters refused by their own solve: 15 local outliers were tried there,
+    and refused (on grid-5k-heavy-local-1000-s13323 one joined). Now only loops across 50
+    frames or more are."""
     import logging
 
     from lcv_replay.bench.suite import build_case_log
@@ -1013,6 +1018,12 @@ def test_a_local_outlier_between_frames_two_apart_is_not_tried_as_a_loop_across_
     assert all(pair in looser for pair in ("(1518↔130)", "(1568↔1024)", "(1618↔962)"))
     tried = [tuple(map(int, re.search(r"loop \d+ \((\d+)↔(\d+)\)", r.getMessage()).groups())) for r in caplog.records if "under the odometry level" in r.getMessage()]
     assert len(tried) == 5 and min(query - match for query, match in tried) > 300  # the local outliers (two frames) are not tried
+    # nor by the retry of the near misses, which had refused them by their own solve
+    near = [tuple(map(int, pair)) for r in caplog.records if "near miss tried again" in r.getMessage()
+            for pair in re.findall(r"\((\d+)↔(\d+)\)", r.getMessage())]
+    assert near and min(query - match for query, match in near) > 50
+    passed_over = " ".join(r.getMessage() for r in caplog.records if "near miss not tried again" in r.getMessage())
+    assert "(1822↔1820)" in passed_over and "(222↔220)" in passed_over
 
 
 @pytest.mark.slow
