@@ -80,9 +80,10 @@ replaces the working one where its truncated cost is lower
 drove, a false group that joined early bends the map the later revisits are judged in. Where it
 replaces it, the loops it left out and those the screen set aside are verified in its map, and
 the conflicts they name are contested as at a window. Clusters
-refused by a near miss, clusters deposed by a contest, clusters
-refused against those and refused clusters of three loops or more that mostly fit the final
-solution are tried once more against the final hypothesis. Last, where the innovations' fitted
+refused by a near miss (of those, the loops across odometry looser than the loop itself),
+clusters deposed by a contest, clusters refused against those and refused clusters of three
+loops or more that mostly fit the final solution are tried once more against the final
+hypothesis. Last, where the innovations' fitted
 tail reaches beyond the gate, the refused loops inside it that nearly fit the final map, across
 odometry looser than the loop itself, are tried under the looser of the declared odometry level
 and the one the long cycles show (:meth:`ConsensusVerifier._retry_under_looser_level`): true
