@@ -284,7 +284,10 @@ def test_a_work_folder_that_cannot_be_created_is_one_error_line(tmp_path, comman
 
     blocker = tmp_path / "a-file"
     blocker.write_text("not a folder")
-    result = CliRunner().invoke(app, [*command, "--workdir", str(blocker / "work")])
+    data = tmp_path / "data"  # the shared data is not needed: the folder is refused first
+    data.mkdir()
+    extra = ["--data", str(data)] if command[1] == "suite" else []
+    result = CliRunner().invoke(app, [*command, *extra, "--workdir", str(blocker / "work")])
     assert result.exit_code == 2, result.output
     assert "Traceback" not in result.output
     assert f"error: {blocker / 'work'}: cannot create the work folder" in result.output
@@ -299,8 +302,11 @@ def test_a_json_report_that_cannot_be_written_is_refused_before_the_suite_runs(t
 
     from lcv_replay.cli import app
 
-    result = CliRunner().invoke(app, ["bench", "suite", "--suite", "standard", "-m", "none", "--workdir", str(tmp_path), "--json", "/proc/lcv-report.json"])
+    data, work = tmp_path / "data", tmp_path / "work"  # the shared data is not needed: the report is refused first
+    data.mkdir()
+    work.mkdir()
+    result = CliRunner().invoke(app, ["bench", "suite", "--suite", "standard", "-m", "none", "--data", str(data), "--workdir", str(work), "--json", "/proc/lcv-report.json"])
     assert result.exit_code == 2, result.output
     assert "Traceback" not in result.output
     assert "error: /proc/lcv-report.json: cannot write the file" in result.output
-    assert not list(tmp_path.iterdir())  # no case log was built
+    assert not list(work.iterdir())  # no case log was built
