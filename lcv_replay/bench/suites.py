@@ -19,7 +19,7 @@ Built-in suites:
     ``standard`` + ``vertigo`` + ``generated`` (108 cases).
 ``regressions``
     The generated worlds on which ``ilv+`` once accepted false loops or missed the bar (63 of
-    2,000 poses, one of 5,000), run with ``ilv+``, GNC-TLS, DCS and the oracle.
+    2,000 poses, two of 5,000), run with ``ilv+``, GNC-TLS, DCS and the oracle.
 ``quick``
     A CI subset: ``robustslam_kitti`` 06 at alpha 0.50 and 07 at alpha 0.00.
 
@@ -293,6 +293,7 @@ def _regression_cases() -> tuple[SuiteCase, ...]:
     cases.extend(world_cases(["ring"], [2000], ["anisotropic"], ["group"], [500], [305]))
     cases.extend(world_cases(["grid"], [2000], ["anisotropic"], ["group"], [400], [12464, 12465, 13634, 13635]))
     cases.extend(world_cases(["ring"], [5000], ["heavy"], ["group"], [1000], [9007]))
+    cases.extend(world_cases(["ring"], [5000], ["heavy"], ["local"], [1000], [13338]))  # a slip placed by refused loops
     return tuple(cases)
 
 
