@@ -3637,7 +3637,7 @@ class ConsensusVerifier(WindowedVerifier):
         Why: on a fresh heavy-tailed 5k ring (ring-5k-heavy-local-1000-s13338, drawn at the
         forty-first stop) the odometry slips 5.7 m at the step from frame 4901 to 4902 (its
         chi-square against the truth 7,452), between the accepted loops of frames 4899 and 4908
-        of a revisit of frames 331-342. The final map spreads the slip over the ten steps, and
+        of a revisit of frames 331-342. The final map spreads the slip over the nine steps between them, and
         under heavy-tailed odometry it sits at step 4907; the revisit's loops of frames 4902,
         4905 and 4907 (chi-square 10.3, 6.2 and 0.2 against the truth) lay 13.3, 5.1 and 1.7 gates
         off the first and 21.2, 17.9 and 21.2 off the second, so every test refused them. With
