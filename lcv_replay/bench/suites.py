@@ -279,7 +279,7 @@ def _regression_cases() -> tuple[SuiteCase, ...]:
     world per fix (tests/verification/test_consensus.py); this suite holds every one of them."""
     heavy_rings = {
         10: (9102, 9104, 9207, 9300, 9302, 9308, 9404, 9420, 9421, 9900, 9903, 10301, 10612, 10712, 11008, 11023, 11803,
-             11804, 12008, 12219, 12805, 13503, 13511, 13514, 13556, 13587, 13663, 13687, 13746),
+             11804, 12008, 12219, 12805, 13503, 13511, 13514, 13556, 13587, 13663, 13687, 13746, 14034),
         20: (9804, 9805, 9852, 11604, 12708, 13201, 13518, 13529, 13597, 13609, 13633, 13653, 13704, 13728),
         5: (9755, 10407),
     }
@@ -294,6 +294,7 @@ def _regression_cases() -> tuple[SuiteCase, ...]:
     cases.extend(world_cases(["grid"], [2000], ["anisotropic"], ["group"], [400], [12464, 12465, 13634, 13635]))
     cases.extend(world_cases(["ring"], [5000], ["heavy"], ["group"], [1000], [9007]))
     cases.extend(world_cases(["ring"], [5000], ["heavy"], ["local"], [1000], [13338]))  # a slip placed by refused loops
+    cases.extend(world_cases(["ring"], [2000], ["heavy"], ["local"], [400], [13923]))  # a revisit beside a slip, once flagged on the count
     return tuple(cases)
 
 

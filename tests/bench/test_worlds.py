@@ -145,6 +145,7 @@ def test_the_regressions_suite_names_each_world_once_with_its_group_size():
     assert by_name["ring-2k-heavy-group-400-s11008"].group_size == 10
     assert by_name["ring-5k-heavy-group-1000-s9007"].world.poses == 5000
     assert by_name["ring-5k-heavy-local-1000-s13338"].outlier_mode == "local"
+    assert by_name["ring-2k-heavy-local-400-s13923"].outlier_mode == "local"
     moved = {"ring-2k-heavy-group-400-s9207", "ring-2k-heavy-group20-400-s9804", "ring-2k-heavy-group-400-s9302", "ring-2k-heavy-group5-400-s9755",
              "ring-2k-heavy-group20-400-s9805", "ring-2k-heavy-group-400-s10612", "ring-2k-heavy-group-400-s9900", "ring-2k-heavy-group-400-s13587",
              "ring-2k-heavy-group-400-s9300", "ring-2k-heavy-group-400-s9420",
