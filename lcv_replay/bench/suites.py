@@ -283,7 +283,7 @@ def _regression_cases() -> tuple[SuiteCase, ...]:
         20: (9804, 9805, 9852, 11604, 12708, 13201, 13518, 13529, 13597, 13609, 13633, 13653, 13704, 13728),
         5: (9755, 10407),
     }
-    heavy_grids = {10: (11911, 13520, 13559, 13565, 13611, 13731), 20: (12905, 13585, 13588, 13712)}
+    heavy_grids = {10: (11911, 13520, 13559, 13565, 13611, 13731), 20: (12905, 13585, 13588, 13712, 14043)}
     cases: list[SuiteCase] = []
     for layout, by_size in (("ring", heavy_rings), ("grid", heavy_grids)):
         for size, seeds in by_size.items():
