@@ -2412,8 +2412,8 @@ class ConsensusVerifier(WindowedVerifier):
         Measured (docs/verification-bench.md, forty-third stop): on a fresh heavy-tailed ring
         (ring-2k-heavy-local-400-s13923) the revisit of frames 1617-1630 to 18-31 (9 loops) was
         flagged, 155 above the map without it; here it fits with one slip beyond its cluster
-        gate, the step from frame 1616 to 1617 (chi-square 1,267): recall 0.970 -> 0.981, ATE 1.33 -> 0.80 m (1.56 -> 0.94
-        times the oracle's). On ring s12805 the revisit of 864-904 to 16-56 (17 loops) fits with
+        gate, the step from frame 1616 to 1617 (chi-square 1,267): recall 0.970 -> 0.981, ATE
+        1.33 -> 0.80 m (1.56 -> 0.94 times the oracle's). On ring s12805 the revisit of 864-904 to 16-56 (17 loops) fits with
         slips at frames 879-881: ATE 1.42 -> 1.01 times the oracle's. Four false groups of the
         ``regressions`` bench suite pass :meth:`_slip_trial` too, and each leaves 1 to 7 refused
         loops that fitted the map without it off the map with it (ring s9900, s10712, s13687; grid

@@ -929,7 +929,8 @@ def test_a_false_group_beside_a_true_revisit_that_contradicts_it_is_flagged_ambi
     that the final map spreads, was flagged ambiguous on the count too (27 loops flagged). Now
     such a revisit stays where it fits the map under heavy-tailed odometry and displaces no
     refused loop that fits the map without it (:meth:`ConsensusVerifier._slip_explains`); the
-    false group still displaces two: recall 0.936 -> 0.963, ATE 1.01 times the oracle's."""
+    false group still leaves a refused loop off that map, and stays flagged: recall 0.936 ->
+    0.963, ATE 1.01 times the oracle's."""
     run, oracle = _world_runs(tmp_path, "ring", 2000, 400, 12805, methods=("ilv+", "oracle"))
     _assert_fixed(run, oracle, recall=0.96, note=("10 loops (1615-1624↔557-566) flagged ambiguous",))
     assert any("17 loops (864-904↔16-56) kept" in note for note in run.result.last_step.notes)
