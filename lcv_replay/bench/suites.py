@@ -295,6 +295,7 @@ def _regression_cases() -> tuple[SuiteCase, ...]:
     cases.extend(world_cases(["ring"], [5000], ["heavy"], ["group"], [1000], [9007]))
     cases.extend(world_cases(["ring"], [5000], ["heavy"], ["local"], [1000], [13338]))  # a slip placed by refused loops
     cases.extend(world_cases(["ring"], [2000], ["heavy"], ["local"], [400], [13923]))  # a revisit beside a slip, once flagged on the count
+    cases.extend(world_cases(["grid"], [2000], ["heavy"], ["local"], [400], [14099]))  # a revisit with slips inside its stretches, once flagged
     return tuple(cases)
 
 
