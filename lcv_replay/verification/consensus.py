@@ -1114,8 +1114,8 @@ class ConsensusVerifier(WindowedVerifier):
         """The small clusters (fewer than ``frontier_min_loops`` loops) of a joint try that
         passes (:meth:`_joint`) that its sum hides: their leave-out statistic at the joint
         solution ``x`` (:meth:`_left_out_d2`), their innovation given every other loop of the
-        try, reaches the rise their own trial allows
-        (:meth:`_rise_allowed`). :meth:`_joint` sets them aside, to be tried one by one.
+        try, reaches the rise their own trial allows (:meth:`_rise_allowed`). :meth:`_joint`
+        sets them aside, to be tried one by one.
 
         Why: the joint gate is the cluster gate of all the try's loops together, and its slack
         grows with their number; a small cluster that bends a stretch of the trajectory only the
@@ -2481,8 +2481,8 @@ class ConsensusVerifier(WindowedVerifier):
         two stretches (the odometry truly slips at 617, and at 216); counted as places it was
         flagged: recall 0.981, ATE 1.20 times the oracle's. Not counted, it stays: 0.997, 0.84
         times. Two revisits on rings s11506 and s11607 (4 and 8 loops), flagged before for
-        slips at two places of their query stretches, stay too (ATE 0.97 to 0.99 times the
-        oracle's)."""
+        slips at two places, at least one of them inside their own stretches, stay too (ATE
+        0.97 to 0.99 times the oracle's)."""
         if not np.any(self._q[rest] > self._q[members].max()):
             return None
         try:
@@ -2501,7 +2501,7 @@ class ConsensusVerifier(WindowedVerifier):
         q, m = self._q[members], self._m[members]
         own = ((large >= q.min() - span) & (large <= q.max() + span)) | ((large >= m.min() - span) & (large <= m.max() + span))
         large = large[~own]  # the slips at their own stretches are the ones they measure
-        places = int(len(large) > 0) + int(np.count_nonzero(np.diff(large) > self.plus.cluster_span_frames))
+        places = int(len(large) > 0) + int(np.count_nonzero(np.diff(large) > span))
         log.debug("ilv+: %d loops (%d-%d) under heavy-tailed odometry: new slips at %s (%d places beyond their cluster gate), "
                   "%d refused loops that fit without them do not with them",
                   len(members), int(self._q[members].min()), int(self._q[members].max()), slips.tolist(), places, len(lost))
