@@ -2483,7 +2483,8 @@ class ConsensusVerifier(WindowedVerifier):
         times. Two revisits on rings s11506 and s11607 (4 and 8 loops), flagged before for
         slips at two places, at least one of them inside their own stretches, stay too (ATE
         0.97 to 0.99 times the oracle's)."""
-        if not np.any(self._q[rest] > self._q[members].max()):
+        q, m = self._q[members], self._m[members]
+        if not np.any(self._q[rest] > q.max()):
             return None
         try:
             base = self._solve_with_slips(rest, without.poses)
@@ -2498,13 +2499,14 @@ class ConsensusVerifier(WindowedVerifier):
         chi2 = self._odometry_chi2(solution.poses, len(solution.poses))[slips]
         large = slips[chi2 >= self.cluster_gate(len(members))]  # in order
         span = self.plus.cluster_span_frames
-        q, m = self._q[members], self._m[members]
-        own = ((large >= q.min() - span) & (large <= q.max() + span)) | ((large >= m.min() - span) & (large <= m.max() + span))
-        large = large[~own]  # the slips at their own stretches are the ones they measure
+        own = np.zeros(len(large), dtype=bool)
+        for frames in (q, m):  # the slips at their own two stretches are the ones they measure
+            own |= (large >= frames.min() - span) & (large <= frames.max() + span)
+        large = large[~own]
         places = int(len(large) > 0) + int(np.count_nonzero(np.diff(large) > span))
         log.debug("ilv+: %d loops (%d-%d) under heavy-tailed odometry: new slips at %s (%d places beyond their cluster gate), "
                   "%d refused loops that fit without them do not with them",
-                  len(members), int(self._q[members].min()), int(self._q[members].max()), slips.tolist(), places, len(lost))
+                  len(members), int(q.min()), int(q.max()), slips.tolist(), places, len(lost))
         return None if len(lost) or places > 1 else sorted(zip(slips.tolist(), chi2.tolist()), key=lambda kv: -kv[1])
 
     def _fit_without(self, members: np.ndarray, without: "pose_graph.PoseGraphSolution") -> bool:
