@@ -345,6 +345,33 @@ def neighbour_pairs(match: np.ndarray, query: np.ndarray, span_frames: int) -> n
     return np.asarray(sorted(pairs), dtype=np.int64).reshape(-1, 2)
 
 
+def shared_end_pairs(match: np.ndarray, query: np.ndarray, span_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs of loops of two passes over one place: one end of each (match or query frame) within
+    ``span_frames`` of the other's, their other ends farther apart than that (not one revisit's
+    run, :func:`neighbour_pairs`), and each loop's own two frames farther apart than that (a loop
+    between nearby frames measures the odometry's stretch, not another pass). Returns
+    ``(pairs (P, 2), shared_is_query (P, 2))``: the loop indices ``(i, j)``, ``i != j``, each
+    unordered pair once per pair of shared ends, and whether each loop's shared end is its query
+    frame (else its match frame). Cost ``O(K log K + P)``."""
+    match = np.asarray(match, dtype=np.int64)
+    query = np.asarray(query, dtype=np.int64)
+    k = len(match)
+    ends = np.concatenate([match, query])
+    owner = np.tile(np.arange(k), 2)
+    is_query = np.repeat([False, True], k)
+    order = np.argsort(ends, kind="stable")
+    within = np.searchsorted(ends[order], ends[order] + span_frames, side="right") - np.arange(2 * k) - 1
+    first = np.repeat(np.arange(2 * k), within)  # each sorted end with every later one within the span
+    second = first + 1 + np.arange(int(within.sum())) - np.repeat(np.cumsum(within) - within, within)
+    a, b = order[first], order[second]
+    other_a = np.where(is_query[a], match[owner[a]], query[owner[a]])
+    other_b = np.where(is_query[b], match[owner[b]], query[owner[b]])
+    revisit = np.abs(query - match) > span_frames
+    keep = (owner[a] != owner[b]) & (np.abs(other_a - other_b) > span_frames) & revisit[owner[a]] & revisit[owner[b]]
+    a, b = a[keep], b[keep]
+    return np.stack([owner[a], owner[b]], axis=1).reshape(-1, 2), np.stack([is_query[a], is_query[b]], axis=1).reshape(-1, 2)
+
+
 def connected_labels(count: int, edges: np.ndarray) -> np.ndarray:
     """``(count,)`` component labels (0, 1, ... in order of first member) of an undirected graph
     with ``(E, 2)`` ``edges`` (union-find)."""

@@ -157,6 +157,27 @@ def test_neighbour_pairs_and_connected_labels():
     assert connected_labels(3, np.zeros((0, 2), dtype=np.int64)).tolist() == [0, 1, 2]
 
 
+def test_shared_end_pairs_are_loops_of_two_passes_over_one_place():
+    from lcv_replay.verification.consistency import shared_end_pairs
+
+    # loops 0-2 revisit frames 268-271 from 1233-1237, loop 3 from two laps later; loop 4 revisits
+    # frame 500 from the query stretch of loop 0; loop 5 lies near nothing; loop 6 joins frames two
+    # apart beside the others (no other pass)
+    match = np.array([268, 270, 271, 270, 500, 900, 266])
+    query = np.array([1233, 1235, 1237, 3417, 1234, 2000, 268])
+    pairs, shared_is_query = shared_end_pairs(match, query, 10)
+    found = {(min(i, j), max(i, j)): bool(shared_is_query[k, 0]) for k, (i, j) in enumerate(pairs.tolist())}
+    # loops of one pass (both ends near) are not pairs; loop 4 shares the query stretch of 0-2
+    assert found == {(0, 3): False, (1, 3): False, (2, 3): False, (0, 4): True, (1, 4): True, (2, 4): True}
+    assert np.all(shared_is_query[:, 0] == shared_is_query[:, 1])  # here match with match, query with query
+    # a match frame near another loop's query frame is a shared end too (a place passed three times)
+    pairs, shared_is_query = shared_end_pairs(np.array([100, 1000]), np.array([1000 - 5 + 900, 105]), 10)
+    assert pairs.tolist() == [[0, 1]] or pairs.tolist() == [[1, 0]]
+    assert sorted(shared_is_query[0].tolist()) == [False, True]
+    empty, flags = shared_end_pairs(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), 10)
+    assert empty.shape == (0, 2) and flags.shape == (0, 2)
+
+
 def _ring_revisit(rng, *, queries, false_run=(), slips=()):
     """Two laps of a ring of 100 frames 1 m apart, and loops of the second lap to the first:
     true ones (measured with 5 cm noise) for ``queries``, and for ``false_run`` loops that claim
