@@ -921,10 +921,31 @@ class ConsensusVerifier(WindowedVerifier):
                 del self.clusters[c.id]
         return large
 
+    #: At the end of the log, the loops that a failed trial sends back to the pool are screened,
+    #: clustered and verified again at once (no next window will), in up to this many rounds.
+    FINAL_POOL_ROUNDS = 3
+
     def _verify_waiting(self, *, final: bool = False) -> list[tuple[Cluster, set[int]]]:
         """Screen the pending and screened-out loops again in the current map, cluster those that
-        pass and verify the clusters (:meth:`_verify`); returns the losers."""
-        return self._verify(self._form_clusters(self._screen()), final=final)
+        pass and verify the clusters (:meth:`_verify`); returns the losers. At the end of the log
+        (``final``) the loops a failed trial released to the pool (:meth:`_cluster_released`)
+        are verified again, round after round while any are left and their number falls (at most
+        :data:`FINAL_POOL_ROUNDS`): left pending they would be neither accepted nor refused.
+
+        Why: on a fresh heavy-tailed ring (ring-2k-heavy-group20-400-s14204, drawn at the
+        forty-fifth stop) the hypothesis built largest first at the end of the log
+        (:meth:`_largest_first`) sent 273 loops back to be verified; the trial of the largest
+        cluster among them (233 loops) failed and released 230 true loops to the pool, which
+        stayed pending to the end."""
+        losers = self._verify(self._form_clusters(self._screen()), final=final)
+        for _ in range(self.FINAL_POOL_ROUNDS if final else 0):
+            pending = int(np.count_nonzero(self._fate == Fate.PENDING))
+            if pending == 0:
+                break
+            losers += self._verify(self._form_clusters(self._screen()), final=True)
+            if np.count_nonzero(self._fate == Fate.PENDING) >= pending:
+                break
+        return losers
 
     def _noted_retry(self, retry: Callable[[], None], how: str) -> list[str]:
         """Run an end-of-log ``retry``; returns the step's note on the refused loops it accepted
