@@ -581,6 +581,15 @@ class ConsensusVerifier(WindowedVerifier):
             return np.zeros(0)
         return se2.between_chi2(x, self._m[ids], self._q[ids], self._z[ids], self._info[ids]) / self.loop_scale
 
+    def _residual_chi2_moved(self, x: np.ndarray, ids: np.ndarray, moved: np.ndarray, moved_is_query: np.ndarray) -> np.ndarray:
+        """``(K,)`` :meth:`_residual_chi2` of loops ``ids`` at the poses ``x``, with one end of
+        each at ``moved`` (``(K, 3)``) instead: its query frame where ``moved_is_query``, else its
+        match frame."""
+        k = len(ids)
+        ends_m = np.where(moved_is_query[:, None], x[self._m[ids]], moved)
+        ends_q = np.where(moved_is_query[:, None], moved, x[self._q[ids]])
+        return se2.between_chi2(np.concatenate([ends_m, ends_q]), np.arange(k), k + np.arange(k), self._z[ids], self._info[ids]) / self.loop_scale
+
     def _chi2_total(self) -> float:
         """Chi-square of the working hypothesis at its solution (odometry and accepted loops)."""
         key = (self.graph.epoch, self.graph.version)  # unique across graphs, moved by every change
@@ -3755,11 +3764,7 @@ class ConsensusVerifier(WindowedVerifier):
             shared_a = np.where(i_query, self._q[a], self._m[a])
             shared_b = np.where(j_query, self._q[b], self._m[b])
             moved = se2.compose(placed, se2.between(odom[shared_a], odom[shared_b]))
-            k = len(b)
-            ends_m = np.where(j_query[:, None], x[self._m[b]], moved)
-            ends_q = np.where(j_query[:, None], moved, x[self._q[b]])
-            chi2 = se2.between_chi2(np.concatenate([ends_m, ends_q]), np.arange(k), k + np.arange(k), self._z[b], self._info[b]) / self.loop_scale
-            return chi2 < self.gate_chi2
+            return self._residual_chi2_moved(x, b, moved, j_query) < self.gate_chi2
 
         i, j = pairs[:, 0], pairs[:, 1]
         agree = fits(i, shared_is_query[:, 0], j, shared_is_query[:, 1]) & fits(j, shared_is_query[:, 1], i, shared_is_query[:, 0])
@@ -3930,10 +3935,7 @@ class ConsensusVerifier(WindowedVerifier):
             f = np.where(end_in_q, q[one], m[one])
             origin = np.where(f <= k, k + 1, k)  # the end moved across the slip follows the odometry from its other side
             moved = se2.compose(x[origin], se2.between(odom[origin], odom[f]))
-            ends_m = np.where(end_in_q[:, None], x[m[one]], moved)
-            ends_q = np.where(end_in_q[:, None], moved, x[q[one]])
-            k_ = len(candidates)
-            chi2 = se2.between_chi2(np.concatenate([ends_m, ends_q]), np.arange(k_), k_ + np.arange(k_), self._z[candidates], self._info[candidates]) / self.loop_scale
+            chi2 = self._residual_chi2_moved(x, candidates, moved, end_in_q)
             if np.any(chi2 < self.gate_chi2):
                 out.setdefault((a, b), []).append(candidates[chi2 < self.gate_chi2])
         return {stretch: np.unique(np.concatenate(parts)) for stretch, parts in out.items()}
