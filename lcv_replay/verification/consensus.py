@@ -3886,22 +3886,7 @@ class ConsensusVerifier(WindowedVerifier):
         groups = [g for g in self._corroborated(rejected, self.graph.estimate()) if len(g) >= self.plus.frontier_min_loops]
         if not groups:
             return
-        waiting = np.concatenate([rejected, self._ids(Fate.SCREENED)])
-        base: pose_graph.PoseGraphSolution | None = None  # the accepted loops under heavy-tailed odometry
-        for members in groups:
-            holding = self.graph.loop_id_array().copy()
-            try:
-                base = base if base is not None else self._solve_with_slips(holding, self.graph.estimate())
-            except OptimisationFailed as exc:
-                log.warning("ilv+: the solution under heavy-tailed odometry failed (%s); no corroborated loops retried", exc.message)
-                return
-            slips = self._slip_explains(members, holding, base, waiting[~np.isin(waiting, members)])
-            log.debug("ilv+: %d refused loops of two or more passes over frames %d-%d agree on the place; %s under heavy-tailed odometry",
-                      len(members), int(self._m[members].min()), int(self._m[members].max()), "accepted" if slips is not None else "refused")
-            if slips is not None:
-                self._fate[members] = Fate.ACCEPTED
-                self._join(members)
-                base = None  # solved again, with them, for the next group
+        self._join_where_slips_explain(groups, "corroborated loops")
 
     def _retry_clusters_across_slips(self) -> None:
         """At the end of the log, after :meth:`_retry_corroborated_across_slips` and under the
@@ -3936,24 +3921,34 @@ class ConsensusVerifier(WindowedVerifier):
         if not parts:
             return
         parts.sort(key=lambda m: (-len(m), int(self._q[m].min())))
-        waiting = np.concatenate([rejected, self._ids(Fate.SCREENED)])
-        base: pose_graph.PoseGraphSolution | None = None
-        for members in parts:
+        self._join_where_slips_explain(parts, "refused clusters", near_gates=self.SLIP_NEAR_GATES)
+
+    def _join_where_slips_explain(self, groups: list[np.ndarray], what: str, *, near_gates: float | None = None) -> None:
+        """Accept each refused group of ``groups`` in turn where :meth:`_slip_explains` passes
+        for it against the accepted loops solved under heavy-tailed odometry (solved again after
+        each group that joins); with ``near_gates``, only a group whose median loop lies within
+        that many gates of that solution is judged. The waiting loops it must not displace are
+        the refused and screened-out ones. Serves :meth:`_retry_corroborated_across_slips` and
+        :meth:`_retry_clusters_across_slips`; ``what`` names the groups in the log."""
+        waiting = np.concatenate([self._ids(Fate.REJECTED), self._ids(Fate.SCREENED)])
+        base: pose_graph.PoseGraphSolution | None = None  # the accepted loops under heavy-tailed odometry
+        for members in groups:
             holding = self.graph.loop_id_array().copy()
             try:
                 base = base if base is not None else self._solve_with_slips(holding, self.graph.estimate())
             except OptimisationFailed as exc:
-                log.warning("ilv+: the solution under heavy-tailed odometry failed (%s); no refused cluster retried", exc.message)
+                log.warning("ilv+: the solution under heavy-tailed odometry failed (%s); no %s retried", exc.message, what)
                 return
-            if np.median(self._residual_chi2(base.poses, members)) >= self.SLIP_NEAR_GATES * self.gate_chi2:
+            if near_gates is not None and np.median(self._residual_chi2(base.poses, members)) >= near_gates * self.gate_chi2:
                 continue
             slips = self._slip_explains(members, holding, base, waiting[~np.isin(waiting, members)])
-            log.debug("ilv+: refused cluster of %d loops (frames %d-%d) %s under heavy-tailed odometry", len(members),
-                      int(self._q[members].min()), int(self._q[members].max()), "accepted" if slips is not None else "refused")
+            log.debug("ilv+: %s, %d loops of frames %d-%d to %d-%d: %s under heavy-tailed odometry", what, len(members),
+                      int(self._q[members].min()), int(self._q[members].max()), int(self._m[members].min()), int(self._m[members].max()),
+                      "accepted" if slips is not None else "refused")
             if slips is not None:
                 self._fate[members] = Fate.ACCEPTED
                 self._join(members)
-                base = None
+                base = None  # solved again, with them, for the next group
 
     def _solve_with_slips(self, loops: np.ndarray, initial: np.ndarray, *, relative_error_tol: float = 1e-5) -> pose_graph.PoseGraphSolution:
         """The odometry (Cauchy kernel, :data:`SLIP_KERNEL_SCALE`, at the level in force) and
