@@ -287,6 +287,7 @@ class ConsensusVerifier(WindowedVerifier):
         self.innovations: list[tuple[int, float]] = []  # (loops, chi-square rise) of each cluster accepted by a solve
         self._one_step_refusals = 0  # trials refused on one Gauss-Newton step, without a solve (_trial)
         self._ambiguous: list[tuple[set[int], set[int]]] = []  # contests neither side won: (incumbent, challenger) cluster ids
+        self._slip_base_cache: tuple[tuple[int, int], pose_graph.PoseGraphSolution] | None = None  # see _slip_base
         self._free_end_claimed = False  # _claim_free_end_across_slips accepted loops (see _retry_across_slips_after_claim)
         self._free_end_holds: dict[int, set[int]] = {}  # cluster id -> clusters refused on a bound in the stretch it took (see _contest_free_end_holds)
         self.gate_chi2 = self.plus.gate_chi2  # on innovations (see _recalibrate)
@@ -3931,11 +3932,10 @@ class ConsensusVerifier(WindowedVerifier):
         the refused and screened-out ones. Serves :meth:`_retry_corroborated_across_slips` and
         :meth:`_retry_clusters_across_slips`; ``what`` names the groups in the log."""
         waiting = np.concatenate([self._ids(Fate.REJECTED), self._ids(Fate.SCREENED)])
-        base: pose_graph.PoseGraphSolution | None = None  # the accepted loops under heavy-tailed odometry
         for members in groups:
             holding = self.graph.loop_id_array().copy()
             try:
-                base = base if base is not None else self._solve_with_slips(holding, self.graph.estimate())
+                base = self._slip_base()
             except OptimisationFailed as exc:
                 log.warning("ilv+: the solution under heavy-tailed odometry failed (%s); no %s retried", exc.message, what)
                 return
@@ -3947,8 +3947,17 @@ class ConsensusVerifier(WindowedVerifier):
                       "accepted" if slips is not None else "refused")
             if slips is not None:
                 self._fate[members] = Fate.ACCEPTED
-                self._join(members)
-                base = None  # solved again, with them, for the next group
+                self._join(members)  # the graph changes: the next group's solution is solved again, with them
+
+    def _slip_base(self) -> pose_graph.PoseGraphSolution:
+        """The accepted loops solved under heavy-tailed odometry (:meth:`_solve_with_slips`) from
+        the working solution, kept until the graph changes: the corroborated retry and the refused
+        clusters' retry run one after the other on the same graph where the first accepts
+        nothing, and each solve is a batch Levenberg-Marquardt solve of the whole graph."""
+        key = (self.graph.epoch, self.graph.version)
+        if self._slip_base_cache is None or self._slip_base_cache[0] != key:
+            self._slip_base_cache = (key, self._solve_with_slips(self.graph.loop_id_array(), self.graph.estimate()))
+        return self._slip_base_cache[1]
 
     def _solve_with_slips(self, loops: np.ndarray, initial: np.ndarray, *, relative_error_tol: float = 1e-5) -> pose_graph.PoseGraphSolution:
         """The odometry (Cauchy kernel, :data:`SLIP_KERNEL_SCALE`, at the level in force) and
