@@ -3952,9 +3952,10 @@ class ConsensusVerifier(WindowedVerifier):
 
     def _slip_base(self) -> pose_graph.PoseGraphSolution:
         """The accepted loops solved under heavy-tailed odometry (:meth:`_solve_with_slips`) from
-        the working solution, kept until the graph changes: the corroborated retry and the refused
-        clusters' retry run one after the other on the same graph where the first accepts
-        nothing, and each solve is a batch Levenberg-Marquardt solve of the whole graph."""
+        the working solution (or, ``warm``, from an earlier such solution of a subset of them),
+        kept until the graph changes: the corroborated retry and the refused clusters' retry run
+        one after the other on the same graph where the first accepts nothing, and each solve is
+        a batch Levenberg-Marquardt solve of the whole graph."""
         key = (self.graph.epoch, self.graph.version)
         if self._slip_base_cache is None or self._slip_base_cache[0] != key:
             self._slip_base_cache = (key, self._solve_with_slips(self.graph.loop_id_array(), self.graph.estimate(), warm=True))
@@ -3966,8 +3967,9 @@ class ConsensusVerifier(WindowedVerifier):
     def _solve_with_slips(self, loops: np.ndarray, initial: np.ndarray, *, relative_error_tol: float = 1e-5, warm: bool = False) -> pose_graph.PoseGraphSolution:
         """The odometry (Cauchy kernel, :data:`SLIP_KERNEL_SCALE`, at the level in force) and
         ``loops`` (at the loops' scale in force) solved by Levenberg-Marquardt from ``initial``,
-        or from the latest solution under heavy-tailed odometry of a subset of ``loops`` (on the
-        same frames) where that one costs less.
+        or (``warm``) from the latest solution under heavy-tailed odometry of a subset of
+        ``loops`` on the same frames (:meth:`_slip_start`) where that one costs less. Each
+        solution is kept as such a start (the last :data:`SLIP_STARTS`).
 
         Why that start: from a Gaussian map the solve takes 70 to 80 iterations on a 10k-pose
         graph (6 to 8 s: every odometry factor's Cauchy weight moves, and the reweighting
@@ -3979,8 +3981,13 @@ class ConsensusVerifier(WindowedVerifier):
         only that loop needs. Why the cheaper start: a solution of fewer loops can lie far from
         where the loops added since pull the map (a claim of the free end moves it metres), and
         from there the Cauchy kernel, which barely pulls a step that far off, leaves slips the
-        new loops do not need (grid-2k-heavy-group20-400-s13712: 27 true loops fewer when every
-        retry across slips started from the subset's solution)."""
+        new loops do not need. Why only :meth:`_slip_base` starts so: with every solve warm (the
+        retry across slips, the slip test's map without the group), grid-2k-heavy-group20-400-
+        s13712 ended with 27 true loops fewer (ATE 1.42 -> 1.64 m), and with 17 fewer where the
+        cheaper start was taken; with :meth:`_slip_base` alone warm the 70 ``regressions``
+        worlds kept their rows but s13712's (+6 true loops, 1.42 -> 1.30 m), and the 10k ring's two
+        solves of it took 3 and 16 iterations instead of 72 and 81 (docs/verification-bench.md,
+        forty-seventh stop)."""
         robust = pose_graph.RobustKernel("cauchy", self.SLIP_KERNEL_SCALE)
         solution = self._batch_solution(loops, initial, odometry_robust=robust, relative_error_tol=relative_error_tol, other_start=self._slip_start(loops, len(initial)) if warm else None)
         self._slip_solutions = [*self._slip_solutions, (frozenset(loops.tolist()), solution.poses)][-self.SLIP_STARTS :]
