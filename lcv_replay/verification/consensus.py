@@ -3575,6 +3575,13 @@ class ConsensusVerifier(WindowedVerifier):
     #: a step beyond the threshold of :meth:`_slip_shows` (a Bonferroni bound over its steps).
     SLIP_EVIDENCE = 0.01
 
+    def _across_slips_switched_on(self) -> bool:
+        """The switch of the end-of-log retries under heavy-tailed odometry
+        (:meth:`_retry_across_slips`, :meth:`_retry_corroborated_across_slips`,
+        :meth:`_retry_clusters_across_slips`): the gate cuts the innovations' fitted tail
+        (:meth:`_tail_bound`), or the working map shows a slip (:meth:`_slip_shows`)."""
+        return self._tail_bound() is not None or self._slip_shows()
+
     def _slip_shows(self) -> bool:
         """Whether the working map's odometry shows a slip: a step whose chi-square under the
         level in force exceeds the ``χ²(3)`` quantile that one of ``n - 1`` Gaussian steps exceeds
@@ -3635,7 +3642,7 @@ class ConsensusVerifier(WindowedVerifier):
         and 881 fit and join, and no false one fits within 5 gates: ATE 0.473 -> 0.345 m (the
         oracle's 0.255, DCS 0.259)."""
         rejected = self._ids(Fate.REJECTED)
-        if len(rejected) == 0 or (self._tail_bound() is None and not self._slip_shows()):
+        if len(rejected) == 0 or not self._across_slips_switched_on():
             return
         x = self.graph.estimate()
         rejected = rejected[self._residual_chi2(x, rejected) < self.NEAR_MISS * self.gate_chi2]
@@ -3883,7 +3890,7 @@ class ConsensusVerifier(WindowedVerifier):
         (grid-2k-heavy-local-400-s14191) the false loop 543 to 541 agreed with the true 1938 to
         546 within a gate, and the pair joined."""
         rejected = self._ids(Fate.REJECTED)
-        if len(rejected) < 2 or (self._tail_bound() is None and not self._slip_shows()):
+        if len(rejected) < 2 or not self._across_slips_switched_on():
             return
         groups = [g for g in self._corroborated(rejected, self.graph.estimate()) if len(g) >= self.plus.frontier_min_loops]
         if not groups:
@@ -3912,7 +3919,7 @@ class ConsensusVerifier(WindowedVerifier):
         15.4 gates passed :meth:`_slip_explains` on three ``regressions`` worlds (ring s9804 20
         false loops, s9207 4, s10407 4); the true clusters that joined lay at 1.5 to 3.4."""
         rejected = self._ids(Fate.REJECTED)
-        if len(rejected) == 0 or (self._tail_bound() is None and not self._slip_shows()):
+        if len(rejected) == 0 or not self._across_slips_switched_on():
             return
         span = self.plus.cluster_span_frames
         parts = []
