@@ -1399,6 +1399,26 @@ def test_a_fresh_heavy_tailed_ring_where_a_false_group_still_wins(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="known failure (issue 16): a false group still wins; see docs/verification-bench.md, 'Forty-eighth stop'")
+@pytest.mark.parametrize(("seed", "group_size"), [(14390, 10), (14416, 20)])
+def test_fresh_heavy_tailed_rings_where_a_false_group_still_wins_at_the_forty_eighth_stop(tmp_path, seed, group_size):
+    """Two heavy-tailed rings of 2,000 poses with 400 grouped outliers, drawn at the forty-eighth
+    stop, on which ``ilv+`` accepts a false group (GNC-TLS none on either):
+
+    * s14390 (groups of 10): a false group of 8 (frames 1025-1032 to 369-376), 10 frames along the
+      first pass from a true revisit whose loops stay refused, is held on the count at the end and
+      kept by the slip test, its new slips inside its own two stretches (ATE 13.7 times the
+      oracle's);
+    * s14416 (groups of 20): after a false group of 8 accepted under the looser odometry level is
+      flagged on the count, the 20 loops that join in the map relieved of it are a false group
+      (1947-1966 to 167-186), not judged again (ATE 9.9 times).
+
+    Strict: when a change fixes one, this test fails until its mark is removed."""
+    (row,) = _world_rows(tmp_path, "ring", 2000, 400, seed, group_size=group_size)
+    assert row.false_positives == 0
+
+
+@pytest.mark.slow
 def test_a_refused_revisit_is_contested_against_a_group_that_claims_its_query_frames_elsewhere(tmp_path):
     """A heavy-tailed ring of 2,000 poses with 400 grouped outliers (groups of 20), seed 13597
     (drawn at the thirty-second stop). At the last window the true revisit of frames 1501-1998 to
