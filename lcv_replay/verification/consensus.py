@@ -3940,11 +3940,11 @@ class ConsensusVerifier(WindowedVerifier):
         refused (1.43 times). Now they join: ATE 0.52 m on both (0.85 and 0.63 times the
         oracle's), and on grid-2k-heavy-group20-400-s13585 the 4 loops of frames 1297-1300 to
         1-4 after a slip at steps 2-4 (ATE 0.241 -> 0.184 m); no other row of the 70
-        ``regressions`` worlds or of 56 fresh 2k worlds changed. Why the same direction and one place: where two passes
-        part (a junction), a false group can lie on the continuation of a revisit's frames. Of
-        the 69 refused clusters of 3 loops or more that lay next to an accepted revisit on those
-        70 worlds (frames only), 18 passed :meth:`_slip_explains`: the 2 true ones above and 16
-        false groups. 6 of those pass the other way from the revisit; the other 10 need large
+        ``regressions`` worlds or of 56 fresh 2k worlds changed. Why the same direction and one
+        place: where two passes part (a junction), a false group can lie on the continuation of
+        a revisit's frames. Of the 69 refused clusters of 3 loops or more that lay next to an
+        accepted revisit on those 70 worlds (frames only), 18 passed :meth:`_slip_explains`: the
+        2 true ones above and 16 false groups. 6 of those pass the other way from the revisit; the other 10 need large
         slips 5 to 9 steps apart, at both ends of their own stretch (the map bent onto the place
         they claim), or at places hundreds of frames apart."""
         rejected = self._ids(Fate.REJECTED)
@@ -3999,8 +3999,8 @@ class ConsensusVerifier(WindowedVerifier):
         for it against the accepted loops solved under heavy-tailed odometry (solved again after
         each group that joins); with ``near_gates``, only a group whose median loop lies within
         that many gates of that solution is judged, or one for which ``continuing`` holds and
-        whose large new slips lie in one place (:meth:`_one_slip`). The waiting loops it must not displace are
-        the refused and screened-out ones. Serves :meth:`_retry_corroborated_across_slips` and
+        whose large new slips lie in one place (:meth:`_one_slip`). The waiting loops it must
+        not displace are the refused and screened-out ones. Serves :meth:`_retry_corroborated_across_slips` and
         :meth:`_retry_clusters_across_slips`; ``what`` names the groups in the log."""
         waiting = np.concatenate([self._ids(Fate.REJECTED), self._ids(Fate.SCREENED)])
         for members in groups:
@@ -4069,8 +4069,8 @@ class ConsensusVerifier(WindowedVerifier):
     def _slip_start(self, loops: np.ndarray, frames: int) -> np.ndarray | None:
         """The latest solution under heavy-tailed odometry (:meth:`_solve_with_slips`) of a
         subset of ``loops`` on ``frames`` frames, or ``None``."""
-        known = loops.tolist()
-        return next((poses for solved, poses in reversed(self._slip_solutions) if len(poses) == frames and solved.issubset(known)), None)
+        known = frozenset(loops.tolist())
+        return next((poses for solved, poses in reversed(self._slip_solutions) if len(poses) == frames and solved <= known), None)
 
     def _batch_solution(
         self,
