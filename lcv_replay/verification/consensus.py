@@ -295,6 +295,7 @@ class ConsensusVerifier(WindowedVerifier):
         self._one_step_refusals = 0  # trials refused on one Gauss-Newton step, without a solve (_trial)
         self._ambiguous: list[tuple[set[int], set[int]]] = []  # contests neither side won: (incumbent, challenger) cluster ids
         self._slip_base_cache: tuple[tuple[int, int], pose_graph.PoseGraphSolution] | None = None  # see _slip_base
+        self._revisits_cache: tuple[tuple[int, int], tuple[np.ndarray, ...]] | None = None  # see _accepted_revisits
         self._slip_solutions: list[tuple[frozenset[int], np.ndarray]] = []  # (loops, poses) of the latest solutions under heavy-tailed odometry (see _solve_with_slips)
         self._free_end_claimed = False  # _claim_free_end_across_slips accepted loops (see _retry_across_slips_after_claim)
         self._free_end_holds: dict[int, set[int]] = {}  # cluster id -> clusters refused on a bound in the stretch it took (see _contest_free_end_holds)
@@ -3959,6 +3960,7 @@ class ConsensusVerifier(WindowedVerifier):
         if not parts:
             return
         parts.sort(key=lambda m: (-len(m), int(self._q[m].min())))
+        self._revisits_cache = None  # the clusters may have been formed again since it was kept
         self._join_where_slips_explain(parts, "refused clusters", near_gates=self.SLIP_NEAR_GATES, continuing=self._continues_a_revisit)
 
     def _continues_a_revisit(self, members: np.ndarray) -> bool:
@@ -3972,18 +3974,34 @@ class ConsensusVerifier(WindowedVerifier):
         span = self.plus.cluster_span_frames
         q, m = self._q[members], self._m[members]
         direction = _pass_direction(q, m)
-        accepted = self.graph.loop_id_array()
-        owners = self._cluster_of[accepted]
-        for owner in np.unique(owners[owners >= 0]).tolist():
-            revisit = accepted[owners == owner]
-            if len(revisit) < self.plus.frontier_min_loops:
-                continue
-            rq, rm = self._q[revisit], self._m[revisit]
-            if _pass_direction(rq, rm) != direction or not (0 < q.min() - rq.max() <= span or 0 < rq.min() - q.max() <= span):
-                continue
-            if abs(np.median(q - direction * m) - np.median(rq - direction * rm)) <= span:
-                return True
-        return False
+        same, first, last, relation = self._accepted_revisits()
+        beside = ((q.min() - last > 0) & (q.min() - last <= span)) | ((first - q.max() > 0) & (first - q.max() <= span))
+        return bool(np.any((same == direction) & beside & (np.abs(np.median(q - direction * m) - relation) <= span)))
+
+    def _accepted_revisits(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per accepted cluster of ``frontier_min_loops`` loops or more (its accepted loops): the
+        direction of its pass (:func:`_pass_direction`), its first and last query frame, and the
+        median of query minus match frame (of their sum for a pass against the first), for
+        :meth:`_continues_a_revisit`. Kept until the graph changes (the refused clusters' retry
+        asks once per cluster, on a graph that changes only where one joins)."""
+        key = (self.graph.epoch, self.graph.version)
+        if self._revisits_cache is None or self._revisits_cache[0] != key:
+            accepted = self.graph.loop_id_array()
+            owners = self._cluster_of[accepted]
+            accepted, owners = accepted[owners >= 0], owners[owners >= 0]
+            order = np.argsort(owners, kind="stable")
+            _, starts, counts = np.unique(owners[order], return_index=True, return_counts=True)
+            rows = []
+            for start, count in zip(starts.tolist(), counts.tolist()):
+                if count < self.plus.frontier_min_loops:
+                    continue
+                revisit = accepted[order[start: start + count]]
+                rq, rm = self._q[revisit], self._m[revisit]
+                way = _pass_direction(rq, rm)
+                rows.append((way, rq.min(), rq.max(), np.median(rq - way * rm)))
+            table = np.array(rows, dtype=float).reshape(-1, 4)
+            self._revisits_cache = (key, (table[:, 0], table[:, 1], table[:, 2], table[:, 3]))
+        return self._revisits_cache[1]
 
     def _one_slip(self, slips: list[tuple[int, float]], size: int) -> bool:
         """Whether the new slips ``(step, chi-square)`` that :meth:`_slip_explains` found for a
