@@ -1631,10 +1631,10 @@ class ConsensusVerifier(WindowedVerifier):
             held = self._members({holder}, Fate.ACCEPTED)
             if len(held) < self.plus.frontier_min_loops:
                 continue
-            displaced = self._displaced(held, refused)
-            if len(displaced) <= len(held):
+            near = np.isin(refused, self._displaced(held, refused))
+            if near.sum() <= len(held):
                 continue
-            inside = np.bincount(at, weights=np.isin(refused, displaced), minlength=len(ids))
+            inside = np.bincount(at, weights=near, minlength=len(ids))
             whole = (inside == counts) & (counts >= 2) & (counts <= len(held)) & (ids != holder)
             blocked = [(c, refused[owners == c]) for c in ids[whole].tolist()]
             blocked = [(c, loops) for c, loops in blocked if self._contradiction(held, loops) >= gate]
